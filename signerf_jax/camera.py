@@ -1,0 +1,290 @@
+"""Pinhole cameras with OpenCV radial-tangential distortion, and the rays they shoot.
+
+Conventions (as nerfstudio):
+  * `camera_to_world` is [3, 4] = [R | t]; the camera's columns are right (+x), up (+y) and back
+    (+z): the camera looks down -z (OpenGL). Converters from OpenCV/LLFF live at the dataset edge.
+  * Pixel (row i, column j) covers [j, j + 1) x [i, i + 1); its centre is (j + 0.5, i + 0.5).
+  * Intrinsics and distortion act on OpenCV normalised coordinates (x right, y down, z = 1).
+  * Ray directions are unit vectors; `t` along a ray is metric distance. A pixel's *z-depth*
+    (distance along the optical axis, what depth maps store) is `t * ray.cos_to_optical_axis`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from signerf_jax import math as safe_math
+
+
+@struct.dataclass
+class Cameras:
+  """A batch of N cameras sharing one image size.
+
+  Attributes:
+    camera_to_world: [N, 3, 4] float32, OpenGL convention (see module docstring).
+    fx, fy: [N] float32 focal lengths in pixels.
+    cx, cy: [N] float32 principal point in pixels (image centre = width / 2, height / 2).
+    distortion: [N, 4] float32 OpenCV (k1, k2, p1, p2); all zero for an ideal pinhole.
+    width, height: image size in pixels (static: array shapes depend on them).
+  """
+
+  camera_to_world: jax.Array
+  fx: jax.Array
+  fy: jax.Array
+  cx: jax.Array
+  cy: jax.Array
+  distortion: jax.Array
+  width: int = struct.field(pytree_node=False)
+  height: int = struct.field(pytree_node=False)
+
+  @classmethod
+  def create(cls, camera_to_world, fx, fy=None, cx=None, cy=None, *, width: int, height: int,
+             distortion=None) -> "Cameras":
+    """Builds cameras, broadcasting scalar intrinsics over the batch.
+
+    Args:
+      camera_to_world: [N, 3, 4] or [N, 4, 4] (the last row is dropped).
+      fx, fy: focal lengths in pixels, scalar or [N]; fy defaults to fx.
+      cx, cy: principal point, scalar or [N]; defaults to the image centre.
+      width, height: image size in pixels.
+      distortion: None, [4] or [N, 4] OpenCV (k1, k2, p1, p2).
+    """
+    camera_to_world = np.asarray(camera_to_world, np.float32)[..., :3, :4]
+    if camera_to_world.ndim == 2:
+      camera_to_world = camera_to_world[None]
+    count = camera_to_world.shape[0]
+
+    def per_camera(value, default):
+      value = default if value is None else value
+      return np.broadcast_to(np.asarray(value, np.float32), (count,)).copy()
+
+    fx = per_camera(fx, None)
+    distortion = np.zeros(4, np.float32) if distortion is None else distortion
+    return cls(
+        camera_to_world=camera_to_world,
+        fx=fx,
+        fy=per_camera(fy, fx),
+        cx=per_camera(cx, width / 2),
+        cy=per_camera(cy, height / 2),
+        distortion=np.broadcast_to(np.asarray(distortion, np.float32), (count, 4)).copy(),
+        width=int(width),
+        height=int(height),
+    )
+
+  @property
+  def num_cameras(self) -> int:
+    return self.camera_to_world.shape[0]
+
+  def __len__(self) -> int:
+    return self.num_cameras
+
+  def take(self, indices) -> "Cameras":
+    """The cameras at `indices` ([K] ints or a slice), keeping the batch axis."""
+    if isinstance(indices, slice):
+      return jax.tree.map(lambda a: a[indices], self)
+    indices = np.asarray(indices).reshape(-1)
+    return jax.tree.map(lambda a: a[indices], self)
+
+  def resized(self, width: int, height: int) -> "Cameras":
+    """The same cameras rendering a `width` x `height` image (intrinsics scaled per axis)."""
+    scale_x, scale_y = width / self.width, height / self.height
+    return self.replace(fx=self.fx * scale_x, fy=self.fy * scale_y, cx=self.cx * scale_x,
+                        cy=self.cy * scale_y, width=int(width), height=int(height))
+
+  def downscaled(self, factor: int) -> "Cameras":
+    """Cameras for images downscaled by an integer factor (sizes rounded down, as OpenCV does)."""
+    return self.resized(self.width // factor, self.height // factor)
+
+  def intrinsic_matrices(self) -> jax.Array:
+    """[N, 3, 3] OpenCV intrinsic matrices K."""
+    zeros, ones = jnp.zeros_like(self.fx), jnp.ones_like(self.fx)
+    rows = [[self.fx, zeros, self.cx], [zeros, self.fy, self.cy], [zeros, zeros, ones]]
+    return jnp.stack([jnp.stack(row, -1) for row in rows], -2)
+
+  @property
+  def positions(self) -> jax.Array:
+    """[N, 3] camera centres in world space."""
+    return self.camera_to_world[:, :, 3]
+
+  @property
+  def forward(self) -> jax.Array:
+    """[N, 3] unit viewing directions (the -z column)."""
+    return -self.camera_to_world[:, :, 2]
+
+
+@struct.dataclass
+class Rays:
+  """A batch of rays, any leading shape [...].
+
+  Attributes:
+    origins: [..., 3] world-space ray origins.
+    directions: [..., 3] unit world-space directions.
+    cos_to_optical_axis: [...] cosine between the ray and its camera's viewing axis, so that
+      z-depth = t * cos_to_optical_axis.
+    camera_indices: [...] int32 index of the camera each ray belongs to.
+  """
+
+  origins: jax.Array
+  directions: jax.Array
+  cos_to_optical_axis: jax.Array
+  camera_indices: jax.Array
+
+  @property
+  def shape(self) -> tuple[int, ...]:
+    return self.camera_indices.shape
+
+  def reshape(self, *shape: int) -> "Rays":
+    return jax.tree.map(lambda a: a.reshape(*shape, *a.shape[len(self.shape):]), self)
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> jax.Array:
+  """Camera-to-world matrices for cameras at `eye` looking at `target`.
+
+  Args:
+    eye, target: [..., 3] positions (must differ).
+    up: [..., 3] approximate world up. When it is parallel to the viewing direction, an axis
+      orthogonal to it is used instead, so the result is always a proper rotation.
+  Returns:
+    [..., 3, 4] OpenGL camera-to-world matrices.
+  """
+  eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
+  up = jnp.broadcast_to(jnp.asarray(up, jnp.float32), eye.shape)
+  back = safe_math.safe_normalize(eye - target)
+  right = jnp.cross(up, back)
+  # Looking straight along `up`: pick the world axis least aligned with the view instead.
+  fallback_axis = jnp.eye(3, dtype=jnp.float32)[jnp.argmin(jnp.abs(back), axis=-1)]
+  degenerate = jnp.linalg.norm(right, axis=-1, keepdims=True) < 1e-6
+  right = jnp.where(degenerate, jnp.cross(fallback_axis, back), right)
+  right = safe_math.safe_normalize(right)
+  camera_up = jnp.cross(back, right)
+  return jnp.stack([right, camera_up, back, eye], axis=-1)
+
+
+def distort(x, y, distortion):
+  """Applies OpenCV radial-tangential distortion to normalised coordinates.
+
+  Args:
+    x, y: [...] undistorted normalised coordinates (x right, y down).
+    distortion: [..., 4] (k1, k2, p1, p2), broadcast against x.
+  Returns:
+    (x_distorted, y_distorted), each [...].
+  """
+  k1, k2, p1, p2 = jnp.moveaxis(distortion, -1, 0)
+  r2 = x * x + y * y
+  radial = 1.0 + r2 * (k1 + r2 * k2)
+  x_distorted = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+  y_distorted = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+  return x_distorted, y_distorted
+
+
+def undistort(x_distorted, y_distorted, distortion, iterations: int = 10):
+  """Inverts `distort` with Newton's method (as nerfstudio / OpenCV do; no closed form exists).
+
+  Args:
+    x_distorted, y_distorted: [...] distorted normalised coordinates.
+    distortion: [..., 4] (k1, k2, p1, p2).
+    iterations: Newton steps; 10 reach float32 precision for realistic lenses.
+  Returns:
+    (x, y) undistorted normalised coordinates, each [...].
+  """
+  k1, k2, p1, p2 = jnp.moveaxis(distortion, -1, 0)
+
+  def newton_step(_, xy):
+    x, y = xy
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * k2)
+    radial_slope = 2.0 * k1 + 4.0 * k2 * r2  # d(radial)/d(r2) * 2
+    residual_x = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - x_distorted
+    residual_y = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - y_distorted
+    dx_dx = radial + radial_slope * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+    dx_dy = radial_slope * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    dy_dx = radial_slope * x * y + 2.0 * p2 * y + 2.0 * p1 * x
+    dy_dy = radial + radial_slope * y * y + 2.0 * p2 * x + 6.0 * p1 * y
+    determinant = dx_dx * dy_dy - dx_dy * dy_dx
+    # A vanishing Jacobian (extreme distortion far outside the valid field) stops the update
+    # instead of sending the point to infinity.
+    inverse_determinant = jnp.where(jnp.abs(determinant) > 1e-8, 1.0 / determinant, 0.0)
+    step_x = (dy_dy * residual_x - dx_dy * residual_y) * inverse_determinant
+    step_y = (dx_dx * residual_y - dy_dx * residual_x) * inverse_determinant
+    return x - step_x, y - step_y
+
+  return jax.lax.fori_loop(0, iterations, newton_step, (x_distorted, y_distorted))
+
+
+def pixel_rays(cameras: Cameras, camera_indices, pixel_x, pixel_y) -> Rays:
+  """Rays through (sub)pixel positions.
+
+  Args:
+    cameras: the camera batch.
+    camera_indices: [...] int index into `cameras`.
+    pixel_x, pixel_y: [...] continuous pixel coordinates (a pixel centre is j + 0.5, i + 0.5).
+  Returns:
+    Rays of shape [...].
+  """
+  camera_indices = jnp.asarray(camera_indices, jnp.int32)
+  pick = lambda array: array[camera_indices]
+  x = (pixel_x - pick(cameras.cx)) / pick(cameras.fx)
+  y = (pixel_y - pick(cameras.cy)) / pick(cameras.fy)
+  x, y = undistort(x, y, pick(cameras.distortion))
+  # OpenCV (x right, y down, +z forward) -> OpenGL camera space (x right, y up, -z forward).
+  directions_camera = jnp.stack([x, -y, -jnp.ones_like(x)], axis=-1)
+  inverse_length = jax.lax.rsqrt(jnp.sum(directions_camera**2, axis=-1))
+  camera_to_world = pick(cameras.camera_to_world)
+  directions = jnp.einsum("...ij,...j->...i", camera_to_world[..., :3, :3], directions_camera)
+  return Rays(
+      origins=camera_to_world[..., :3, 3],
+      directions=safe_math.safe_normalize(directions),
+      cos_to_optical_axis=inverse_length,
+      camera_indices=camera_indices,
+  )
+
+
+def image_rays(cameras: Cameras, camera_index) -> Rays:
+  """All pixel-centre rays of one camera, shape [height, width]."""
+  rows, columns = jnp.meshgrid(jnp.arange(cameras.height, dtype=jnp.float32) + 0.5,
+                               jnp.arange(cameras.width, dtype=jnp.float32) + 0.5, indexing="ij")
+  indices = jnp.full(rows.shape, camera_index, jnp.int32)
+  return pixel_rays(cameras, indices, columns, rows)
+
+
+def random_rays(key: jax.Array, cameras: Cameras, batch_size: int):
+  """A uniform random batch of pixel-centre rays over all cameras and pixels.
+
+  Returns:
+    rays: Rays of shape [batch_size].
+    pixels: (camera_index, row, column), each [batch_size] int32, to gather target colours.
+  """
+  camera_key, row_key, column_key = jax.random.split(key, 3)
+  camera_index = jax.random.randint(camera_key, (batch_size,), 0, cameras.num_cameras)
+  row = jax.random.randint(row_key, (batch_size,), 0, cameras.height)
+  column = jax.random.randint(column_key, (batch_size,), 0, cameras.width)
+  rays = pixel_rays(cameras, camera_index, column + 0.5, row + 0.5)
+  return rays, (camera_index, row, column)
+
+
+def project(cameras: Cameras, points):
+  """Projects world points into every camera (with distortion).
+
+  Args:
+    points: [..., 3] world-space points.
+  Returns:
+    pixels: [N, ..., 2] continuous pixel coordinates (x, y).
+    z_depth: [N, ...] distance in front of each camera along its axis (<= 0 means behind).
+  """
+  points = jnp.asarray(points, jnp.float32)
+  extra_dims = points.ndim - 1
+  expand = lambda array: array.reshape(array.shape[:1] + (1,) * extra_dims + array.shape[1:])
+  rotation = expand(cameras.camera_to_world[:, :, :3])
+  translation = expand(cameras.camera_to_world[:, :, 3])
+  # world -> camera is R^T (p - t).
+  local = jnp.einsum("...ji,...j->...i", rotation, points[None] - translation)
+  z_depth = -local[..., 2]
+  safe_depth = safe_math.safe_div(1.0, z_depth)
+  x, y = local[..., 0] * safe_depth, -local[..., 1] * safe_depth
+  x, y = distort(x, y, expand(cameras.distortion))
+  pixels = jnp.stack([x * expand(cameras.fx) + expand(cameras.cx),
+                      y * expand(cameras.fy) + expand(cameras.cy)], axis=-1)
+  return pixels, z_depth

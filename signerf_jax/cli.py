@@ -1,0 +1,43 @@
+"""The `signerf` command: one subcommand per pipeline stage.
+
+Each subcommand lives in the module that owns its stage and exposes `add_arguments(parser)` and
+`run(args) -> int`. Only the chosen subcommand's module is imported, so `signerf --help` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+from signerf_jax.errors import InputError
+
+# name -> (module implementing it, one-line help). Stages add themselves here.
+COMMANDS: dict[str, tuple[str, str]] = {}
+
+
+def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
+  parser = argparse.ArgumentParser(prog="signerf", description=__doc__.splitlines()[0])
+  subparsers = parser.add_subparsers(dest="command", required=True)
+  for name, (module_name, help_text) in COMMANDS.items():
+    subparser = subparsers.add_parser(name, help=help_text, description=help_text)
+    subparser.set_defaults(module_name=module_name)
+    if argv and argv[0] == name:
+      importlib.import_module(module_name).add_arguments(subparser)
+  return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  argv = list(sys.argv[1:] if argv is None else argv)
+  args = build_parser(argv).parse_args(argv)
+  module = importlib.import_module(args.module_name)
+  try:
+    return int(module.run(args) or 0)
+  except InputError as error:
+    print(f"signerf {args.command}: error: {error}", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+  sys.exit(main())

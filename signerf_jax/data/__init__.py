@@ -1,0 +1,5 @@
+"""Datasets: readers, writers and synthetic scenes with ground truth."""
+
+from signerf_jax.data.dataset import Dataset
+
+__all__ = ["Dataset"]

@@ -1,0 +1,146 @@
+"""Reading and writing files: atomic writes, JSON, 8/16-bit images and EXR depth maps.
+
+Every writer goes through `atomic_path`, so an interrupted run never leaves a half-written file:
+the data lands in a temporary file next to the target and is renamed over it only when complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+
+from signerf_jax.errors import InputError
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+  """Yields a temporary path in `path`'s directory; renames it onto `path` on success.
+
+  The temporary name keeps `path`'s suffix so format-sniffing writers (OpenCV, OpenEXR) work.
+  """
+  path = Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+  os.close(handle)
+  try:
+    yield Path(temporary)
+    os.replace(temporary, path)
+  except BaseException:
+    with contextlib.suppress(FileNotFoundError):
+      os.remove(temporary)
+    raise
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+  with atomic_path(path) as temporary:
+    temporary.write_bytes(data)
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+  write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, value: Any) -> None:
+  write_text(path, json.dumps(value, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+  if isinstance(value, np.ndarray):
+    return value.tolist()
+  if isinstance(value, np.generic):
+    return value.item()
+  if isinstance(value, Path):
+    return str(value)
+  raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+  """Parses a JSON file; a missing or malformed file is an InputError naming it."""
+  path = Path(path)
+  if not path.is_file():
+    raise InputError("file not found", path)
+  try:
+    return json.loads(path.read_text(encoding="utf-8"))
+  except (json.JSONDecodeError, UnicodeDecodeError) as error:
+    raise InputError(f"not valid JSON ({error})", path) from None
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+  """Reads an 8- or 16-bit PNG/JPEG.
+
+  Returns:
+    [H, W, C] float32 in [0, 1], channels RGB or RGBA (C = 3 or 4); grey images get C = 1.
+  """
+  path = Path(path)
+  if not path.is_file():
+    raise InputError("image file not found", path)
+  image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+  if image is None:
+    raise InputError("not a readable image", path)
+  scale = np.float32(np.iinfo(image.dtype).max) if image.dtype.kind in "ui" else np.float32(1)
+  image = image.astype(np.float32) / scale
+  if image.ndim == 2:
+    return image[..., None]
+  if image.shape[-1] == 3:
+    return image[..., ::-1].copy()
+  return image[..., [2, 1, 0, 3]].copy()
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, bit_depth: int = 8) -> None:
+  """Writes an image atomically.
+
+  Args:
+    path: .png or .jpg target.
+    image: [H, W], [H, W, 1], [H, W, 3] (RGB) or [H, W, 4] (RGBA), float in [0, 1].
+    bit_depth: 8 or 16 (16 only for PNG).
+  """
+  image = np.asarray(image, np.float32)
+  if image.ndim == 3 and image.shape[-1] == 1:
+    image = image[..., 0]
+  if image.ndim == 3:
+    order = [2, 1, 0] if image.shape[-1] == 3 else [2, 1, 0, 3]
+    image = image[..., order]
+  dtype = {8: np.uint8, 16: np.uint16}[bit_depth]
+  quantised = np.round(np.clip(np.nan_to_num(image), 0, 1) * np.iinfo(dtype).max).astype(dtype)
+  ok, encoded = cv2.imencode(Path(path).suffix or ".png", quantised)
+  if not ok:
+    raise InputError("OpenCV could not encode this image type", path)
+  write_bytes(path, encoded.tobytes())
+
+
+def write_exr(path: str | os.PathLike, array: np.ndarray) -> None:
+  """Writes a float32 EXR (ZIP compressed): [H, W] as channel Z, [H, W, 3] as RGB."""
+  import OpenEXR  # pylint: disable=g-import-not-at-top  (heavy, only needed here)
+
+  array = np.ascontiguousarray(array, np.float32)
+  channels = {"Z": array} if array.ndim == 2 else {"RGB": array}
+  header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
+  with atomic_path(path) as temporary:
+    OpenEXR.File(header, channels).write(str(temporary))
+
+
+def read_exr(path: str | os.PathLike) -> np.ndarray:
+  """Reads a single-channel (Z, Y, R or depth) or RGB EXR as float32 [H, W] or [H, W, 3]."""
+  import OpenEXR  # pylint: disable=g-import-not-at-top
+
+  path = Path(path)
+  if not path.is_file():
+    raise InputError("EXR file not found", path)
+  try:
+    channels = OpenEXR.File(str(path)).channels()
+  except Exception as error:  # OpenEXR raises bare exceptions on corrupt files.
+    raise InputError(f"not a readable EXR file ({error})", path) from None
+  for name in ("Z", "depth", "Y", "R", "RGB", "RGBA"):
+    if name in channels:
+      pixels = np.asarray(channels[name].pixels, np.float32)
+      return pixels[..., :3] if pixels.ndim == 3 else pixels
+  if len(channels) == 1:
+    return np.asarray(next(iter(channels.values())).pixels, np.float32)
+  raise InputError(f"no depth channel among {sorted(channels)}", path, "channels")

@@ -1,0 +1,69 @@
+"""Numerically safe elementwise functions whose values *and gradients* stay finite.
+
+Each function clamps its input to the range where the plain function is finite, and defines its
+derivative from the clamped input, so `jax.grad` never meets inf * 0 = nan at the guard.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+TINY = float(jnp.finfo(jnp.float32).tiny)
+EPSILON = float(jnp.finfo(jnp.float32).eps)
+# exp(88.7) is the largest finite float32; stay a little below it.
+MAX_EXP_INPUT = 88.0
+
+
+@jax.custom_jvp
+def safe_exp(x):
+  """exp(min(x, 88)): finite for any finite input, with a finite derivative."""
+  return jnp.exp(jnp.minimum(x, MAX_EXP_INPUT))
+
+
+@safe_exp.defjvp
+def _safe_exp_jvp(primals, tangents):
+  (x,), (x_dot,) = primals, tangents
+  y = safe_exp(x)
+  return y, y * x_dot
+
+
+@jax.custom_jvp
+def safe_log(x):
+  """log(max(x, tiny)): finite for x <= 0, derivative 1 / max(x, tiny)."""
+  return jnp.log(jnp.maximum(x, TINY))
+
+
+@safe_log.defjvp
+def _safe_log_jvp(primals, tangents):
+  (x,), (x_dot,) = primals, tangents
+  return safe_log(x), x_dot / jnp.maximum(x, TINY)
+
+
+@jax.custom_jvp
+def safe_sqrt(x):
+  """sqrt(max(x, 0)) whose derivative at 0 is large but finite, not inf."""
+  return jnp.sqrt(jnp.maximum(x, 0.0))
+
+
+@safe_sqrt.defjvp
+def _safe_sqrt_jvp(primals, tangents):
+  (x,), (x_dot,) = primals, tangents
+  return safe_sqrt(x), 0.5 * x_dot / jnp.sqrt(jnp.maximum(x, EPSILON))
+
+
+def safe_div(numerator, denominator, eps: float = 1e-10):
+  """numerator / denominator, with |denominator| clamped to >= eps (sign kept; 0 -> +eps).
+
+  eps = 1e-10 keeps the derivative -numerator / denominator**2 finite in float32 (1e20);
+  a float32-tiny clamp would overflow it to inf and turn gradients into nan.
+  """
+  sign = jnp.where(denominator < 0, -1.0, 1.0)
+  return numerator / (sign * jnp.maximum(jnp.abs(denominator), eps))
+
+
+def safe_normalize(vector, axis: int = -1, eps: float = 1e-12):
+  """vector / |vector| along `axis`; zero vectors stay zero (with zero gradient)."""
+  squared_norm = jnp.sum(vector**2, axis=axis, keepdims=True)
+  return vector * jax.lax.rsqrt(jnp.maximum(squared_norm, eps**2))
+

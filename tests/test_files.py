@@ -1,0 +1,48 @@
+import numpy as np
+import pytest
+
+from signerf_jax import files
+from signerf_jax.errors import InputError
+
+
+def test_atomic_path_leaves_nothing_when_the_writer_fails(tmp_path):
+  target = tmp_path / "out" / "result.json"
+  files.write_json(target, {"kept": 1})
+  with pytest.raises(RuntimeError):
+    with files.atomic_path(target) as temporary:
+      temporary.write_text("half written")
+      raise RuntimeError("interrupted")
+  assert files.read_json(target) == {"kept": 1}
+  assert sorted(p.name for p in target.parent.iterdir()) == ["result.json"]
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+@pytest.mark.parametrize("bit_depth", [8, 16])
+def test_image_round_trip(tmp_path, channels, bit_depth):
+  image = np.random.default_rng(0).random((7, 9, channels)).astype(np.float32)
+  files.write_image(tmp_path / "image.png", image, bit_depth=bit_depth)
+  restored = files.read_image(tmp_path / "image.png")
+  assert restored.shape == image.shape and restored.dtype == np.float32
+  np.testing.assert_allclose(restored, image, atol=0.5 / (2**bit_depth - 1) + 1e-6)
+
+
+@pytest.mark.parametrize("shape", [(5, 6), (5, 6, 3)])
+def test_exr_round_trip_is_exact(tmp_path, shape):
+  array = np.random.default_rng(1).random(shape).astype(np.float32) * 100
+  files.write_exr(tmp_path / "depth.exr", array)
+  np.testing.assert_array_equal(files.read_exr(tmp_path / "depth.exr"), array)
+
+
+def test_bad_files_name_themselves(tmp_path):
+  broken = tmp_path / "broken.json"
+  broken.write_text("{not json")
+  with pytest.raises(InputError, match="broken.json"):
+    files.read_json(broken)
+  with pytest.raises(InputError, match="missing.png"):
+    files.read_image(tmp_path / "missing.png")
+  (tmp_path / "garbage.png").write_bytes(b"not an image")
+  with pytest.raises(InputError, match="garbage.png"):
+    files.read_image(tmp_path / "garbage.png")
+  (tmp_path / "garbage.exr").write_bytes(b"not an exr")
+  with pytest.raises(InputError, match="garbage.exr"):
+    files.read_exr(tmp_path / "garbage.exr")
