@@ -1,0 +1,1 @@
+"""Latent diffusion in Flax: UNet, ControlNet, AutoencoderKL, CLIP text encoder, schedulers."""
