@@ -1,0 +1,188 @@
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from signerf_jax import files
+from signerf_jax.data import load_dataset, nerfstudio, poses, write_nerfstudio
+from signerf_jax.errors import InputError
+
+
+def assert_same_cameras(actual, expected):
+  assert (actual.width, actual.height) == (expected.width, expected.height)
+  for name in ("camera_to_world", "fx", "fy", "cx", "cy", "distortion"):
+    np.testing.assert_array_equal(getattr(actual, name), getattr(expected, name), err_msg=name)
+
+
+@pytest.mark.parametrize("distortion", [None, (-0.12, 0.03, 0.001, -0.002)])
+@pytest.mark.parametrize("per_frame_intrinsics", [False, True])
+def test_write_then_read_gives_identical_cameras_and_data(tmp_path, dataset_factory, distortion,
+                                                          per_frame_intrinsics):
+  similarity = poses.similarity(0.5, poses.rotation_between([0, 0, 1], [0, 1, 0]), [0.1, 0, 0])
+  dataset = dataset_factory(distortion=distortion, per_frame_intrinsics=per_frame_intrinsics,
+                            world_from_source=similarity)
+  path = write_nerfstudio(tmp_path, dataset, provenance={"made_by": "test"})
+  meta = files.read_json(path)
+  assert ("fl_x" in meta) != per_frame_intrinsics
+  assert meta["camera_model"] == ("PINHOLE" if distortion is None else "OPENCV")
+  assert meta["signerf"]["provenance"] == {"made_by": "test"}
+
+  restored = load_dataset(tmp_path, split="all")
+  assert_same_cameras(restored.cameras, dataset.cameras)
+  np.testing.assert_allclose(restored.images, dataset.images, atol=0.5 / 255 + 1e-6)
+  np.testing.assert_allclose(restored.masks, dataset.masks, atol=0.5 / 255)
+  np.testing.assert_array_equal(restored.depths, dataset.depths)
+  np.testing.assert_array_equal(restored.extras["object_masks"], dataset.extras["object_masks"])
+  np.testing.assert_allclose(restored.world_from_source, dataset.world_from_source, atol=1e-7)
+  np.testing.assert_array_equal(restored.scene_bounds, dataset.scene_bounds)
+  np.testing.assert_array_equal(restored.background_color, dataset.background_color)
+  assert (restored.scene_kind, restored.near, restored.far) == ("bounded", 1.5, 3.5)
+
+
+def test_split_holds_out_every_nth_frame_and_shares_the_frame(tmp_path, dataset_factory):
+  dataset = dataset_factory(count=10)
+  write_nerfstudio(tmp_path, dataset)
+  train = load_dataset(tmp_path, split="train", eval_every=4)
+  held_out = load_dataset(tmp_path, split="eval", eval_every=4)
+  assert held_out.image_names == tuple(f"images/frame_{i:05d}.png" for i in (0, 4, 8))
+  assert train.num_images == 7 and "images/frame_00004.png" not in train.image_names
+  np.testing.assert_array_equal(held_out.cameras.camera_to_world,
+                                dataset.cameras.camera_to_world[[0, 4, 8]])
+  np.testing.assert_array_equal(train.world_from_source, held_out.world_from_source)
+
+
+def test_downscale_prefers_prepared_folders_and_otherwise_averages(tmp_path, dataset_factory):
+  dataset = dataset_factory(width=12, height=8)
+  write_nerfstudio(tmp_path, dataset)
+  resampled = load_dataset(tmp_path, split="all", downscale=2)
+  assert (resampled.width, resampled.height) == (6, 4)
+  assert_same_cameras(resampled.cameras, dataset.cameras.downscaled(2))
+  quantised = np.round(dataset.images[0] * 255) / 255
+  np.testing.assert_allclose(resampled.images[0],
+                             quantised.reshape(4, 2, 6, 2, 3).mean((1, 3)), atol=1e-5)
+  # Depth and object ids are sampled, never averaged (at the pixel under each centre).
+  np.testing.assert_array_equal(resampled.depths[0], dataset.depths[0][1::2, 1::2])
+  np.testing.assert_array_equal(resampled.extras["object_masks"],
+                                dataset.extras["object_masks"][:, 1::2, 1::2])
+
+  marker = np.full((4, 6, 3), 0.2, np.float32)
+  for index in range(dataset.num_images):
+    files.write_image(tmp_path / "images_2" / f"frame_{index:05d}.png", marker)
+  prepared = load_dataset(tmp_path, split="all", downscale=2)
+  np.testing.assert_allclose(prepared.images, 0.2, atol=1 / 255)
+
+
+def test_depth_png_uses_the_unit_scale_and_depth_follows_normalisation(tmp_path,
+                                                                       dataset_factory):
+  dataset = dataset_factory(count=3, with_extras=False)
+  write_nerfstudio(tmp_path, dataset)
+  meta = files.read_json(tmp_path / "transforms.json")
+  depth_millimetres = np.full((dataset.height, dataset.width), 2500.0)
+  for frame in meta["frames"]:
+    frame["depth_file_path"] = frame["file_path"].replace("images/", "depth/")
+    files.write_image(tmp_path / frame["depth_file_path"], depth_millimetres / 65535, 16)
+  # Bounds outside the unit box: the reader scales the scene (here by 1/2), depths with it.
+  meta["signerf"]["scene_bounds"] = [[-2, -2, -2], [2, 2, 2]]
+  del meta["signerf"]["near"], meta["signerf"]["far"]
+  files.write_json(tmp_path / "transforms.json", meta)
+  restored = load_dataset(tmp_path, split="all")
+  np.testing.assert_allclose(restored.depths, 1.25, rtol=1e-6)
+  np.testing.assert_allclose(restored.cameras.positions, dataset.cameras.positions / 2,
+                             atol=1e-6)
+  np.testing.assert_array_equal(restored.scene_bounds, [[-1, -1, -1], [1, 1, 1]])
+
+
+def test_rgba_images_are_composited_on_the_background(tmp_path, dataset_factory):
+  dataset = dataset_factory(count=2, with_extras=False)
+  write_nerfstudio(tmp_path, dataset)
+  rgba = np.zeros((dataset.height, dataset.width, 4), np.float32)
+  rgba[..., 0], rgba[..., 3] = 1.0, 0.25
+  files.write_image(tmp_path / "images/frame_00000.png", rgba)
+  restored = load_dataset(tmp_path, split="all")
+  # 25% red over the dataset's background (1, 0.5, 0).
+  np.testing.assert_allclose(restored.images[0], np.broadcast_to([1.0, 0.375, 0.0], (9, 12, 3)),
+                             atol=2 / 255)
+
+
+def test_plain_nerfstudio_capture_is_normalised_like_nerfstudio(tmp_path, dataset_factory):
+  dataset = dataset_factory(count=8, with_extras=False)
+  source_from_scene = poses.similarity(7.0, poses.rotation_between([0, 0, 1], [1, 0, 0]),
+                                       [3.0, -2.0, 5.0])
+  write_nerfstudio(tmp_path, dataclasses.replace(
+      dataset, cameras=poses.transform_cameras(source_from_scene, dataset.cameras)))
+  meta = files.read_json(tmp_path / "transforms.json")
+  del meta["signerf"], meta["applied_transform"]
+  files.write_json(tmp_path / "transforms.json", meta)
+  restored = load_dataset(tmp_path, split="all")
+  assert restored.scene_kind == "unbounded" and restored.background_color is None
+  positions = np.asarray(restored.cameras.positions)
+  assert np.max(np.abs(positions)) == pytest.approx(1.0, abs=1e-5)
+  np.testing.assert_allclose(positions.mean(0), 0.0, atol=1e-5)
+  # The ring's cameras share one up vector: it is turned onto +z.
+  np.testing.assert_allclose(np.asarray(restored.cameras.camera_to_world)[:, :, 1].mean(0)
+                             @ [0, 0, 1], np.linalg.norm(
+                                 np.asarray(dataset.cameras.camera_to_world)[:, :, 1].mean(0)),
+                             atol=1e-5)
+  # world_from_source maps the file's frame into the scene: cameras agree through it.
+  np.testing.assert_allclose(
+      poses.transform_points(restored.world_from_source,
+                             np.asarray(dataset.cameras.positions) @ source_from_scene[:3, :3].T
+                             + source_from_scene[:3, 3]), positions, atol=1e-5)
+
+
+def test_forward_facing_capture_is_detected(tmp_path, dataset_factory):
+  dataset = dataset_factory(count=4, with_extras=False)
+  camera_to_world = np.asarray(dataset.cameras.camera_to_world).copy()
+  camera_to_world[:, :, :3] = np.eye(3)
+  camera_to_world[:, :, 3] = np.stack([np.linspace(-1, 1, 4), np.zeros(4), np.zeros(4)], -1)
+  write_nerfstudio(tmp_path, dataclasses.replace(
+      dataset, cameras=dataset.cameras.replace(camera_to_world=camera_to_world)))
+  meta = files.read_json(tmp_path / "transforms.json")
+  del meta["signerf"]
+  files.write_json(tmp_path / "transforms.json", meta)
+  assert load_dataset(tmp_path).scene_kind == "forward_facing"
+  assert load_dataset(tmp_path, scene_kind="unbounded").scene_kind == "unbounded"
+  bounded = load_dataset(tmp_path, scene_kind="bounded", background_color=(0, 0, 0))
+  np.testing.assert_array_equal(bounded.background_color, [0, 0, 0])
+
+
+def test_rewriting_a_directory_removes_stale_frames_and_never_mixes(tmp_path, dataset_factory,
+                                                                    monkeypatch):
+  write_nerfstudio(tmp_path, dataset_factory(count=6))
+  smaller = dataset_factory(count=3, seed=1)
+  # Interrupt the second write half-way: no transforms.json may point at a mix of files.
+  calls = []
+
+  def failing_write_exr(path, array):
+    calls.append(path)
+    if len(calls) == 2:
+      raise KeyboardInterrupt
+    files.write_exr(path, array)
+
+  monkeypatch.setattr(nerfstudio.files, "write_exr", failing_write_exr)
+  with pytest.raises(KeyboardInterrupt):
+    write_nerfstudio(tmp_path, smaller)
+  assert not (tmp_path / "transforms.json").exists()
+  with pytest.raises(InputError, match="transforms.json"):
+    load_dataset(tmp_path)
+  monkeypatch.undo()
+
+  write_nerfstudio(tmp_path, smaller)
+  assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [
+      f"frame_{i:05d}.png" for i in range(3)]
+  assert not list(tmp_path.rglob(".*"))  # no temporary files left behind
+  restored = load_dataset(tmp_path, split="all")
+  np.testing.assert_array_equal(restored.depths, smaller.depths)
+
+
+def test_frames_without_optional_files_get_neutral_values(tmp_path, dataset_factory):
+  dataset = dataset_factory(count=3)
+  write_nerfstudio(tmp_path, dataset)
+  meta = json.loads((tmp_path / "transforms.json").read_text())
+  for key in ("mask_path", "depth_file_path", "object_mask_path"):
+    del meta["frames"][1][key]
+  files.write_json(tmp_path / "transforms.json", meta)
+  restored = load_dataset(tmp_path, split="all")
+  assert np.all(restored.masks[1] == 1) and np.all(restored.depths[1] == 0)
+  assert np.all(restored.extras["object_masks"][1] == 0)
