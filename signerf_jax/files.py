@@ -29,6 +29,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
   path.parent.mkdir(parents=True, exist_ok=True)
   handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
   os.close(handle)
+  # mkstemp creates the file private (0600); give it the permissions a plain open() would.
+  os.chmod(temporary, 0o666 & ~_current_umask())
   try:
     yield Path(temporary)
     os.replace(temporary, path)
@@ -36,6 +38,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     with contextlib.suppress(FileNotFoundError):
       os.remove(temporary)
     raise
+
+
+def _current_umask() -> int:
+  mask = os.umask(0)
+  os.umask(mask)
+  return mask
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

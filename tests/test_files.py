@@ -16,6 +16,12 @@ def test_atomic_path_leaves_nothing_when_the_writer_fails(tmp_path):
   assert sorted(p.name for p in target.parent.iterdir()) == ["result.json"]
 
 
+def test_atomic_writes_get_ordinary_file_permissions(tmp_path):
+  files.write_text(tmp_path / "note.txt", "hello")
+  (tmp_path / "plain.txt").write_text("hello")
+  assert (tmp_path / "note.txt").stat().st_mode == (tmp_path / "plain.txt").stat().st_mode
+
+
 @pytest.mark.parametrize("channels", [1, 3, 4])
 @pytest.mark.parametrize("bit_depth", [8, 16])
 def test_image_round_trip(tmp_path, channels, bit_depth):
