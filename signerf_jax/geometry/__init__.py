@@ -1,0 +1,1 @@
+"""Scene-space geometry: proxy meshes, mesh depth, selections, masks, control depth, cameras."""
