@@ -27,7 +27,7 @@ import colorsys
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import gin
 import jax
@@ -80,6 +80,8 @@ class SceneObject:
     mesh_path: the OBJ file (meshes only).
     file_to_canonical: [4, 4] from the OBJ's coordinates into the canonical frame (meshes only).
     clusters: the canonical triangles for ray casting (meshes only).
+    albedo_function: canonical points [R, 3] -> albedo [R, 3]; when given it replaces `color`
+      and `texture` (procedural appearances defined elsewhere, e.g. the default model's data).
   """
 
   object_id: int
@@ -94,6 +96,7 @@ class SceneObject:
   mesh_path: str | None = None
   file_to_canonical: np.ndarray | None = None
   clusters: raycast.TriangleClusters | None = None
+  albedo_function: Callable[[np.ndarray], np.ndarray] | None = None
 
   def world_bounds(self) -> np.ndarray:
     """[2, 3] axis-aligned bounds of the shape in the scene."""
@@ -186,6 +189,11 @@ def load_canonical_mesh(path: str | os.PathLike) -> tuple[np.ndarray, raycast.Tr
     raise InputError(f"not a readable mesh ({error})", path) from None
   if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
     raise InputError("holds no triangles", path)
+  return canonical_mesh(mesh)
+
+
+def canonical_mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, raycast.TriangleClusters]:
+  """`load_canonical_mesh` for a mesh in memory (+y up): (file_to_canonical, clusters)."""
   y_up_to_z_up = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
   vertices = mesh.vertices @ y_up_to_z_up.T
   lower, upper = vertices.min(0), vertices.max(0)
@@ -435,8 +443,12 @@ def cast_rays(scene: SyntheticScene, origins: np.ndarray, directions: np.ndarray
     # Normals map with the inverse transpose: n_world = L^-T n_local.
     normals[closer] = raycast.linear_map(linear.T, local_normals[closer])
     points = local_origins[closer] + shape_t[closer, None] * local_directions[closer]
-    pattern = _texture(shape, points)[:, None]
-    albedo[closer] = shape.color * (TEXTURE_DARK_FRACTION + (1 - TEXTURE_DARK_FRACTION) * pattern)
+    if shape.albedo_function is not None:
+      albedo[closer] = shape.albedo_function(points)
+    else:
+      pattern = _texture(shape, points)[:, None]
+      albedo[closer] = shape.color * (TEXTURE_DARK_FRACTION
+                                      + (1 - TEXTURE_DARK_FRACTION) * pattern)
   length = np.linalg.norm(normals, axis=-1, keepdims=True)
   normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
   # Two-sided shading: the visible side of a surface faces the ray.

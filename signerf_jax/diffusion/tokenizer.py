@@ -35,6 +35,7 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from signerf_jax import files
+from signerf_jax.diffusion import word_tokenizer
 from signerf_jax.errors import InputError
 
 END_OF_WORD = "</w>"
@@ -292,4 +293,7 @@ def load_tokenizer(directory: str | os.PathLike) -> Tokenizer:
     raise InputError("tokenizer directory not found", directory)
   if (directory / "vocab.json").is_file() and (directory / "merges.txt").is_file():
     return CLIPTokenizer.from_directory(directory)
-  raise InputError("no tokenizer found: expected vocab.json and merges.txt (CLIP BPE)", directory)
+  if word_tokenizer.is_word_tokenizer_directory(directory):
+    return word_tokenizer.WordTokenizer.from_directory(directory)
+  raise InputError("no tokenizer found: expected vocab.json and merges.txt (CLIP BPE) or a "
+                   "word-level tokenizer_config.json", directory)

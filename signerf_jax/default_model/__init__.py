@@ -1,0 +1,1 @@
+"""The project's own small inpainting diffusion model: its procedural training and evaluation data."""

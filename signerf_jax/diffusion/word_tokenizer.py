@@ -1,0 +1,140 @@
+"""A word-level tokenizer for small text encoders trained on a closed vocabulary.
+
+Text is lower-cased and split into runs of letters and digits; everything else (whitespace,
+punctuation, underscores) only separates words. Each word maps to its id in the vocabulary, or to
+the unknown token. `tokenize` lays ids out as the CLIP tokenizer does: bos, the words (truncated
+to max_length - 2), eos, then padding, so the CLIP text encoder's pooling at the first eos works
+unchanged.
+
+Saved in a checkpoint's `tokenizer/` folder (diffusers layout) as
+  vocab.json              {token: id}: the four special tokens, then the words in sorted order;
+  tokenizer_config.json   {"tokenizer_class": TOKENIZER_CLASS, "model_max_length", the special
+                          tokens, "do_lower_case": true};
+  special_tokens_map.json the special tokens.
+`signerf_jax.diffusion.tokenizer.load_tokenizer` recognises the folder by its tokenizer_class.
+
+Special ids: pad 0, unk 1, bos 2, eos 3. The eos id is deliberately not 2: a CLIP text config
+with eos_token_id 2 selects transformers' legacy pooling at argmax(ids).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from signerf_jax import files
+from signerf_jax.errors import InputError
+
+TOKENIZER_CLASS = "SignerfWordTokenizer"
+SPECIAL_TOKENS = {"pad_token": "<pad>", "unk_token": "<unk>", "bos_token": "<bos>",
+                  "eos_token": "<eos>"}
+DEFAULT_MAX_LENGTH = 16
+VOCABULARY_NAME = "vocab.json"
+CONFIG_NAME = "tokenizer_config.json"
+SPECIAL_TOKENS_MAP_NAME = "special_tokens_map.json"
+_WORD = re.compile(r"[^\W_]+")
+
+
+def split_words(text: str) -> list[str]:
+  """Lower-cased runs of letters and digits: "A red, striped COW!" -> [a, red, striped, cow]."""
+  return _WORD.findall(text.lower())
+
+
+class WordTokenizer:
+  """Words -> ids with a fixed vocabulary.
+
+  Attributes:
+    vocabulary: token -> id (special tokens included).
+    max_length: output length, bos and eos included.
+    pad_id, unk_id, bos_id, eos_id: special token ids.
+  """
+
+  def __init__(self, vocabulary: dict[str, int], max_length: int = DEFAULT_MAX_LENGTH,
+               source: str | os.PathLike | None = None):
+    missing = [token for token in SPECIAL_TOKENS.values() if token not in vocabulary]
+    if missing:
+      raise InputError(f"special tokens {missing} are not in the vocabulary", source, "vocab")
+    if sorted(vocabulary.values()) != list(range(len(vocabulary))):
+      raise InputError("ids must be 0 .. size - 1, each used once", source, "vocab")
+    if max_length < 2:
+      raise InputError(f"max_length must leave room for bos and eos, got {max_length}", source,
+                       "model_max_length")
+    self.vocabulary = dict(vocabulary)
+    self.max_length = max_length
+    self.pad_id, self.unk_id, self.bos_id, self.eos_id = (
+        vocabulary[SPECIAL_TOKENS[name]]
+        for name in ("pad_token", "unk_token", "bos_token", "eos_token"))
+    self._tokens = {token_id: token for token, token_id in vocabulary.items()}
+
+  @classmethod
+  def from_words(cls, words: Iterable[str], max_length: int = DEFAULT_MAX_LENGTH
+                 ) -> "WordTokenizer":
+    """The vocabulary of every word in `words` (split and lower-cased), after the specials."""
+    unique = sorted({word for text in words for word in split_words(text)})
+    tokens = [SPECIAL_TOKENS[name] for name in ("pad_token", "unk_token", "bos_token",
+                                                "eos_token")] + unique
+    return cls({token: token_id for token_id, token in enumerate(tokens)}, max_length)
+
+  @classmethod
+  def from_directory(cls, directory: str | os.PathLike) -> "WordTokenizer":
+    directory = Path(directory)
+    vocabulary = files.read_json(directory / VOCABULARY_NAME)
+    if not isinstance(vocabulary, dict) or not all(
+        isinstance(token_id, int) for token_id in vocabulary.values()):
+      raise InputError("expected a JSON object of token -> integer id", directory / VOCABULARY_NAME)
+    config = files.read_json(directory / CONFIG_NAME)
+    max_length = config.get("model_max_length")
+    if not isinstance(max_length, int):
+      raise InputError(f"expected an integer, got {max_length!r}", directory / CONFIG_NAME,
+                       "model_max_length")
+    for name, token in SPECIAL_TOKENS.items():
+      if config.get(name, token) != token:
+        raise InputError(f"expected {token!r} (the word tokenizer's fixed special tokens), got "
+                         f"{config[name]!r}", directory / CONFIG_NAME, name)
+    return cls(vocabulary, max_length, source=directory / VOCABULARY_NAME)
+
+  def save(self, directory: str | os.PathLike) -> None:
+    """Writes the three files of the module docstring into `directory` (atomically each)."""
+    directory = Path(directory)
+    files.write_json(directory / VOCABULARY_NAME, self.vocabulary)
+    files.write_json(directory / SPECIAL_TOKENS_MAP_NAME, SPECIAL_TOKENS)
+    files.write_json(directory / CONFIG_NAME, {"tokenizer_class": TOKENIZER_CLASS,
+                                               "model_max_length": self.max_length,
+                                               "do_lower_case": True, **SPECIAL_TOKENS})
+
+  @property
+  def vocab_size(self) -> int:
+    return len(self.vocabulary)
+
+  def encode(self, text: str) -> list[int]:
+    """Ids of the words of `text` (unknown words -> unk), without bos/eos or padding."""
+    return [self.vocabulary.get(word, self.unk_id) for word in split_words(text)]
+
+  def tokenize(self, texts: Sequence[str]) -> np.ndarray:
+    """[B, max_length] int32: `bos, ids[:max_length - 2], eos, pad, ...` per text."""
+    if isinstance(texts, str):
+      raise TypeError("tokenize takes a sequence of texts; wrap a single prompt in a list")
+    result = np.full((len(texts), self.max_length), self.pad_id, np.int32)
+    for row, text in enumerate(texts):
+      ids = [self.bos_id, *self.encode(text)[:self.max_length - 2], self.eos_id]
+      result[row, :len(ids)] = ids
+    return result
+
+  def decode(self, ids: Sequence[int]) -> str:
+    """The words of one id row, special tokens dropped, joined by spaces."""
+    specials = (self.pad_id, self.bos_id, self.eos_id)
+    return " ".join(self._tokens[int(token_id)] for token_id in ids
+                    if int(token_id) not in specials)
+
+
+def is_word_tokenizer_directory(directory: str | os.PathLike) -> bool:
+  """Whether `directory` holds a saved `WordTokenizer` (by its config's tokenizer_class)."""
+  config_path = Path(directory) / CONFIG_NAME
+  if not config_path.is_file():
+    return False
+  config = files.read_json(config_path)
+  return isinstance(config, dict) and config.get("tokenizer_class") == TOKENIZER_CLASS

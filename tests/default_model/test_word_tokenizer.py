@@ -1,0 +1,79 @@
+"""Word-level tokenizer: layout, round trip, unknown words, saving and detection by load_tokenizer."""
+
+import json
+
+import numpy as np
+import pytest
+
+from signerf_jax.default_model import captions
+from signerf_jax.diffusion import clip_text
+from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax.diffusion import word_tokenizer
+from signerf_jax.errors import InputError
+
+
+@pytest.fixture
+def tokenizer():
+  return word_tokenizer.WordTokenizer.from_words(["a red striped cow", "an orange ball"],
+                                                 max_length=8)
+
+
+def test_ids_are_bos_words_eos_then_padding(tokenizer):
+  ids = tokenizer.tokenize(["A RED cow", ""])
+  vocabulary = tokenizer.vocabulary
+  assert ids.dtype == np.int32 and ids.shape == (2, 8)
+  np.testing.assert_array_equal(ids[0], [tokenizer.bos_id, vocabulary["a"], vocabulary["red"],
+                                         vocabulary["cow"], tokenizer.eos_id] + [tokenizer.pad_id] * 3)
+  np.testing.assert_array_equal(ids[1], [tokenizer.bos_id, tokenizer.eos_id] + [tokenizer.pad_id] * 6)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("a red striped cow", "a red striped cow"),
+    ("  A Red,STRIPED   cow!! ", "a red striped cow"),
+    ("an_orange-ball.", "an orange ball"),
+])
+def test_round_trip_lowercases_and_splits_on_punctuation(tokenizer, text, words):
+  assert tokenizer.decode(tokenizer.tokenize([text])[0]) == words
+
+
+def test_unknown_words_map_to_unk(tokenizer):
+  ids = tokenizer.tokenize(["a purple zebra cow"])[0]
+  assert list(ids[1:6]) == [tokenizer.vocabulary["a"], tokenizer.unk_id, tokenizer.unk_id,
+                            tokenizer.vocabulary["cow"], tokenizer.eos_id]
+  assert tokenizer.decode(ids) == "a <unk> <unk> cow"
+
+
+def test_long_texts_are_truncated_keeping_eos(tokenizer):
+  ids = tokenizer.tokenize(["red " * 20])[0]
+  assert list(ids) == [tokenizer.bos_id] + [tokenizer.vocabulary["red"]] * 6 + [tokenizer.eos_id]
+
+
+def test_eos_id_avoids_clips_legacy_pooling(tokenizer):
+  # A CLIP text config with eos_token_id 2 pools at argmax(ids) instead of the first eos.
+  assert tokenizer.eos_id != clip_text.LEGACY_EOS_TOKEN_ID
+  assert tokenizer.vocabulary["<pad>"] == 0
+
+
+def test_saved_tokenizer_is_found_by_load_tokenizer(tmp_path):
+  original = word_tokenizer.WordTokenizer.from_words(captions.vocabulary())
+  original.save(tmp_path)
+  loaded = tokenizer_lib.load_tokenizer(tmp_path)
+  assert isinstance(loaded, word_tokenizer.WordTokenizer)
+  assert loaded.vocabulary == original.vocabulary and loaded.max_length == 16
+  texts = ["a red striped cow", "an orange teddy bear with spots", "a plain box"]
+  np.testing.assert_array_equal(loaded.tokenize(texts), original.tokenize(texts))
+  assert original.unk_id not in original.tokenize(texts)
+
+
+def test_bad_tokenizer_files_raise_input_errors(tmp_path):
+  word_tokenizer.WordTokenizer.from_words(["a cow"]).save(tmp_path)
+  vocabulary_path = tmp_path / word_tokenizer.VOCABULARY_NAME
+  vocabulary_path.write_text(json.dumps({"a": 0, "cow": 1}))
+  with pytest.raises(InputError, match="special tokens"):
+    tokenizer_lib.load_tokenizer(tmp_path)
+  vocabulary_path.write_text(json.dumps({"<pad>": 0, "<unk>": 1, "<bos>": 2, "<eos>": 5}))
+  with pytest.raises(InputError, match="ids must be"):
+    tokenizer_lib.load_tokenizer(tmp_path)
+  (tmp_path / word_tokenizer.CONFIG_NAME).write_text(json.dumps({"tokenizer_class": "Other"}))
+  with pytest.raises(InputError, match="no tokenizer found"):
+    tokenizer_lib.load_tokenizer(tmp_path)
