@@ -1,0 +1,203 @@
+"""Memory-bounded multi-head attention and the transformer layers of the UNet.
+
+`dot_product_attention` never builds the full [batch, heads, queries, keys] score tensor for
+large inputs: above `AttentionOptions.max_plain_scores` score elements it walks over the
+batch x heads one at a time and, within a head, over chunks of `query_chunk_size` queries
+(`lax.map`), so the live score block is [query_chunk_size, keys] -- 100 MB for 1,024 queries
+against the 24,576 keys of an SDXL 1024x1536 sheet, whatever the sheet size. Within a chunk the
+softmax is exact (every key is present), so the result equals plain softmax attention up to
+float rounding. Only tiny problems use the plain batched einsum.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.linen as nn
+import gin
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from signerf_jax.diffusion.layers import Conv2d, Dtype, GroupNorm, LayerNorm, Linear
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class AttentionOptions:
+  """How attention is evaluated (results agree to float rounding; speed and memory differ).
+
+  Attributes:
+    query_chunk_size: queries per block in the chunked path; the live score block of one head is
+      [query_chunk_size, keys] float32.
+    max_plain_scores: largest batch * heads * queries * keys evaluated as one plain einsum
+      (2**18 elements = 1 MB of float32 scores); larger problems take the chunked path, which
+      on CPU is also the faster one from a few hundred tokens up (e.g. 2x for 4,096 queries
+      against 77 text tokens).
+  """
+  query_chunk_size: int = 1024
+  max_plain_scores: int = 2**18
+
+
+def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
+                          options: AttentionOptions = AttentionOptions(),
+                          compute_dtype: Dtype = jnp.float32) -> jax.Array:
+  """softmax(q k^T / sqrt(d)) v per head.
+
+  Args:
+    query: [B, Tq, H, D].
+    key, value: [B, Tk, H, D].
+    options: plain-versus-chunked switch and chunk size.
+    compute_dtype: input dtype of the two matmuls (they accumulate in float32; the softmax is
+      always float32).
+
+  Returns:
+    [B, Tq, H, D] float32.
+  """
+  batch, query_tokens, heads, head_dim = query.shape
+  key_tokens = key.shape[1]
+  query = (query * head_dim**-0.5).astype(compute_dtype)
+  key, value = key.astype(compute_dtype), value.astype(compute_dtype)
+  if batch * heads * query_tokens * key_tokens <= options.max_plain_scores:
+    scores = jnp.einsum("bqhd,bkhd->bhqk", query, key, preferred_element_type=jnp.float32)
+    weights = jax.nn.softmax(scores, axis=-1).astype(compute_dtype)
+    return jnp.einsum("bhqk,bkhd->bqhd", weights, value, preferred_element_type=jnp.float32)
+
+  chunk = min(options.query_chunk_size, query_tokens)
+  chunks = -(-query_tokens // chunk)
+  padded = chunks * chunk
+  if padded != query_tokens:  # Padded queries attend harmlessly and are sliced off below.
+    query = jnp.pad(query, ((0, 0), (0, padded - query_tokens), (0, 0), (0, 0)))
+  # One (batch, head) pair at a time: [B*H, chunks, chunk, D] queries, [B*H, Tk, D] keys/values.
+  per_head = lambda x: x.transpose(0, 2, 1, 3).reshape(batch * heads, -1, head_dim)
+  query = per_head(query).reshape(batch * heads, chunks, chunk, head_dim)
+  key, value = per_head(key), per_head(value)
+
+  def attend_one_head(inputs):
+    head_queries, head_keys, head_values = inputs
+
+    def attend_one_chunk(chunk_queries):
+      scores = lax.dot_general(chunk_queries, head_keys, (((1,), (1,)), ((), ())),
+                               preferred_element_type=jnp.float32)
+      unnormalised = jnp.exp(scores - jnp.max(scores, axis=-1, keepdims=True))
+      denominator = jnp.sum(unnormalised, axis=-1, keepdims=True)
+      out = jnp.dot(unnormalised.astype(compute_dtype), head_values,
+                    preferred_element_type=jnp.float32)
+      return out / denominator
+
+    return lax.map(attend_one_chunk, head_queries)
+
+  out = lax.map(attend_one_head, (query, key, value))  # [B*H, chunks, chunk, D]
+  out = out.reshape(batch, heads, padded, head_dim)[:, :, :query_tokens]
+  return out.transpose(0, 2, 1, 3)
+
+
+def multi_head_attention(x: jax.Array, context: jax.Array, heads: int, head_dim: int,
+                         out_features: int, qkv_bias: bool, options: AttentionOptions,
+                         compute_dtype: Dtype) -> jax.Array:
+  """Projections to_q/to_k/to_v, attention, then to_out.0: x [B, T, C], context [B, S, C_ctx].
+
+  Creates its Linear layers in the calling module's scope, so the caller must be inside a
+  compact method; the parameter names are diffusers' Attention's.
+  """
+  inner = heads * head_dim
+
+  def project(name, inputs):
+    projected = Linear(inner, qkv_bias, compute_dtype, name=name)(inputs)
+    return projected.reshape(*inputs.shape[:-1], heads, head_dim)
+
+  out = dot_product_attention(project("to_q", x), project("to_k", context),
+                              project("to_v", context), options, compute_dtype)
+  out = out.reshape(*x.shape[:-1], inner)
+  return Linear(out_features, name="to_out_0", compute_dtype=compute_dtype)(out)
+
+
+class Attention(nn.Module):
+  """diffusers' Attention: x [B, T, C] attends to `context` (or itself) -> [B, T, out_features]."""
+  heads: int
+  head_dim: int
+  out_features: int
+  qkv_bias: bool = False
+  options: AttentionOptions = AttentionOptions()
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array, context: jax.Array | None = None) -> jax.Array:
+    return multi_head_attention(x, x if context is None else context, self.heads, self.head_dim,
+                                self.out_features, self.qkv_bias, self.options, self.compute_dtype)
+
+
+class GEGLU(nn.Module):
+  """proj -> value * gelu(gate), the gate being the second half of the projection."""
+  inner: int
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    value, gate = jnp.split(Linear(2 * self.inner, name="proj",
+                                   compute_dtype=self.compute_dtype)(x), 2, axis=-1)
+    return value * jax.nn.gelu(gate, approximate=False)
+
+
+class GEGLUFeedForward(nn.Module):
+  """diffusers' FeedForward with GEGLU: net.0 (GEGLU) -> net.2 (Linear)."""
+  dim: int
+  multiplier: int = 4
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    hidden = GEGLU(self.dim * self.multiplier, self.compute_dtype, name="net_0")(x)
+    return Linear(self.dim, name="net_2", compute_dtype=self.compute_dtype)(hidden)
+
+
+class BasicTransformerBlock(nn.Module):
+  """Self-attention, cross-attention and GEGLU feed-forward, each pre-LayerNorm and residual."""
+  dim: int
+  heads: int
+  head_dim: int
+  options: AttentionOptions = AttentionOptions()
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array, context: jax.Array) -> jax.Array:
+    attention = lambda name: Attention(self.heads, self.head_dim, self.dim, options=self.options,
+                                       compute_dtype=self.compute_dtype, name=name)
+    x = x + attention("attn1")(LayerNorm(name="norm1")(x))
+    x = x + attention("attn2")(LayerNorm(name="norm2")(x), context)
+    return x + GEGLUFeedForward(self.dim, compute_dtype=self.compute_dtype, name="ff")(
+        LayerNorm(name="norm3")(x))
+
+
+class Transformer2D(nn.Module):
+  """diffusers' Transformer2DModel on continuous NHWC input.
+
+  x [B, H, W, C], context [B, S, C_ctx] -> [B, H, W, C]. `use_linear_projection` (SD 2.x,
+  SDXL) makes proj_in/proj_out dense layers; otherwise they are 1x1 convolutions (SD 1.x): the
+  same matmul in NHWC, but stored with a different weight shape.
+  """
+  heads: int
+  head_dim: int
+  num_layers: int
+  groups: int
+  use_linear_projection: bool
+  options: AttentionOptions = AttentionOptions()
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array, context: jax.Array) -> jax.Array:
+    batch, height, width, channels = x.shape
+    inner = self.heads * self.head_dim
+
+    def projection(features, name):
+      if self.use_linear_projection:
+        return Linear(features, name=name, compute_dtype=self.compute_dtype)
+      return Conv2d(features, kernel_size=1, padding=0, name=name, compute_dtype=self.compute_dtype)
+
+    h = GroupNorm(self.groups, 1e-6, name="norm")(x)
+    h = projection(inner, "proj_in")(h).reshape(batch, height * width, inner)
+    for index in range(self.num_layers):
+      h = BasicTransformerBlock(inner, self.heads, self.head_dim, self.options, self.compute_dtype,
+                                name=f"transformer_blocks_{index}")(h, context)
+    h = projection(channels, "proj_out")(h.reshape(batch, height, width, inner))
+    return h + x

@@ -1,0 +1,149 @@
+"""diffusers' ControlNetModel in Flax (SD 1.x/2.x and the SDXL text_time variant).
+
+Layout: latents and the conditioning image are NHWC. The conditioning image is in pixel space
+([B, 8h, 8w, C] for h x w latents with the usual 4-stage embedding), in whatever range the
+checkpoint was trained on (diffusers' pipelines feed [0, 1]). The output is a
+`ControlNetResiduals` that `UNet2DCondition(..., control=...)` adds into its skips and mid block.
+
+    module, params = load_controlnet("checkpoint/controlnet")
+    residuals = jax.jit(module.apply, static_argnames="guess_mode")(
+        {"params": params}, latents, timestep, text_states, depth_image, 1.0)
+"""
+
+from __future__ import annotations
+
+import os
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax.diffusion import model_configs, weights
+from signerf_jax.diffusion.attention import AttentionOptions
+from signerf_jax.diffusion.blocks import (ControlNetResiduals, DownBlock, MidBlock, embed_time,
+                                          example_inputs)
+from signerf_jax.diffusion.layers import Conv2d, Dtype
+from signerf_jax.errors import InputError
+
+
+class ConditioningEmbedding(nn.Module):
+  """The small conv net taking the conditioning image down to latent resolution.
+
+  [B, H, W, conditioning_channels] -> [B, H / 2^(n-1), W / 2^(n-1), out_channels], n being the
+  number of `block_out_channels`; its last convolution is zero-initialised in training.
+  """
+  out_channels: int
+  block_out_channels: tuple[int, ...]
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    conv = lambda features, name, stride=1: Conv2d(features, stride=stride, name=name,
+                                                   compute_dtype=self.compute_dtype)
+    x = nn.silu(conv(self.block_out_channels[0], "conv_in")(x))
+    for index, (channels, next_channels) in enumerate(zip(self.block_out_channels[:-1],
+                                                          self.block_out_channels[1:])):
+      x = nn.silu(conv(channels, f"blocks_{2 * index}")(x))
+      x = nn.silu(conv(next_channels, f"blocks_{2 * index + 1}", stride=2)(x))
+    return conv(self.out_channels, "conv_out")(x)
+
+
+def guess_mode_scales(count: int) -> np.ndarray:
+  """diffusers' guess-mode weights: 10^linspace(-1, 0, count), from 0.1 (shallowest) to 1 (mid)."""
+  return np.logspace(-1.0, 0.0, count).astype(np.float32)
+
+
+class ControlNet(nn.Module):
+  """ControlNetModel; configure it with `ControlNetConfig.from_dict(config_json)`."""
+  config: model_configs.ControlNetConfig
+  attention: AttentionOptions = AttentionOptions()
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, sample: jax.Array, timesteps: jax.Array, encoder_hidden_states: jax.Array,
+               controlnet_cond: jax.Array, conditioning_scale: float | jax.Array = 1.0, *,
+               guess_mode: bool = False, text_embeds: jax.Array | None = None,
+               time_ids: jax.Array | None = None) -> ControlNetResiduals:
+    """Computes the residuals for the UNet.
+
+    Args:
+      sample: [B, h, w, in_channels] NHWC latents (as fed to the UNet, without inpainting
+        channels for a 4-channel ControlNet).
+      timesteps: scalar or [B].
+      encoder_hidden_states: [B, S, cross_attention_dim].
+      controlnet_cond: [B, H, W, conditioning_channels] NHWC conditioning image, RGB order
+        (flipped here for checkpoints trained on BGR).
+      conditioning_scale: multiplies every residual; may be a traced scalar (no recompilation).
+      guess_mode: weight residuals from 0.1 (shallowest skip) to 1.0 (mid block) as diffusers
+        does; a Python bool (it is part of the compiled program).
+      text_embeds, time_ids: SDXL's text_time conditioning.
+
+    Returns:
+      ControlNetResiduals with one down map per UNet skip and the mid map; with
+      global_pool_conditions each map is averaged over height and width ([B, 1, 1, C]).
+    """
+    config = self.config
+    options = dict(attention=self.attention, compute_dtype=self.compute_dtype)
+    if controlnet_cond.shape[-1] != config.conditioning_channels:
+      raise InputError(f"controlnet_cond has {controlnet_cond.shape[-1]} channels (NHWC) but "
+                       f"the ControlNet takes {config.conditioning_channels}",
+                       field="controlnet_cond")
+    if config.conditioning_channel_order == "bgr":
+      controlnet_cond = controlnet_cond[..., ::-1]
+    time_embedding = embed_time(config, timesteps, sample.shape[0], text_embeds, time_ids,
+                                self.compute_dtype)
+    context = encoder_hidden_states
+
+    channels = config.block_out_channels
+    x = Conv2d(channels[0], config.conv_in_kernel, padding=config.conv_in_kernel // 2,
+               compute_dtype=self.compute_dtype, name="conv_in")(sample)
+    x = x + ConditioningEmbedding(channels[0], config.conditioning_embedding_out_channels,
+                                  self.compute_dtype, name="controlnet_cond_embedding")(
+                                      controlnet_cond)
+    skips = [x]
+    for index in range(len(channels)):
+      x, block_skips = DownBlock(config, index, **options, name=f"down_blocks_{index}")(
+          x, time_embedding, context)
+      skips.extend(block_skips)
+    x = MidBlock(config, **options, name="mid_block")(x, time_embedding, context)
+
+    zero_conv = lambda skip, name: Conv2d(skip.shape[-1], kernel_size=1, padding=0, name=name,
+                                          compute_dtype=self.compute_dtype)(skip)
+    down = [zero_conv(skip, f"controlnet_down_blocks_{index}") for index, skip in enumerate(skips)]
+    mid = zero_conv(x, "controlnet_mid_block")
+
+    if guess_mode and not config.global_pool_conditions:
+      scales = jnp.asarray(guess_mode_scales(len(down) + 1)) * conditioning_scale
+    else:
+      scales = jnp.broadcast_to(jnp.asarray(conditioning_scale, jnp.float32), (len(down) + 1,))
+    down = [residual * scales[index] for index, residual in enumerate(down)]
+    mid = mid * scales[-1]
+    if config.global_pool_conditions:
+      down = [jnp.mean(residual, axis=(1, 2), keepdims=True) for residual in down]
+      mid = jnp.mean(mid, axis=(1, 2), keepdims=True)
+    return ControlNetResiduals(tuple(down), mid)
+
+  def example_inputs(self) -> dict[str, jax.ShapeDtypeStruct]:
+    """Abstract inputs of the smallest valid size, for shape inference (`weights`)."""
+    config = self.config
+    inputs = example_inputs(config)
+    batch, size = inputs["sample"].shape[:2]
+    image_size = size * 2 ** (len(config.conditioning_embedding_out_channels) - 1)
+    inputs["controlnet_cond"] = jax.ShapeDtypeStruct(
+        (batch, image_size, image_size, config.conditioning_channels), jnp.float32)
+    return inputs
+
+
+def load_controlnet(path: str | os.PathLike, dtype=np.float32, *, variant: str | None = None,
+                    attention: AttentionOptions | None = None,
+                    compute_dtype: Dtype = jnp.float32) -> tuple[ControlNet, dict]:
+  """Builds the ControlNet of a diffusers `controlnet/` directory and loads its safetensors.
+
+  Arguments as `unet.load_unet`; `path` may be a pipeline directory containing `controlnet/`.
+  """
+  directory = model_configs.component_directory(path, "controlnet")
+  config = model_configs.ControlNetConfig.from_dict(model_configs.read_config(directory),
+                                                    directory / "config.json")
+  module = ControlNet(config, attention or AttentionOptions(), compute_dtype)
+  return module, weights.load_params(module, directory, dtype, variant)
