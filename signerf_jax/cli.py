@@ -14,7 +14,15 @@ from typing import Sequence
 from signerf_jax.errors import InputError
 
 # name -> (module implementing it, one-line help). Stages add themselves here.
-COMMANDS: dict[str, tuple[str, str]] = {}
+COMMANDS: dict[str, tuple[str, str]] = {
+    "synthesize": ("signerf_jax.data.commands",
+                   "write a synthetic scene with ground-truth depth and object masks"),
+    "train": ("signerf_jax.nerf.commands.train", "train (or resume) a NeRF on a dataset"),
+    "render": ("signerf_jax.nerf.commands.render",
+               "render a trained NeRF's views (PNG, depth EXR) and a camera-path video"),
+    "eval": ("signerf_jax.nerf.commands.evaluate",
+             "evaluate a trained NeRF (PSNR, SSIM, depth error) as one JSON line"),
+}
 
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:

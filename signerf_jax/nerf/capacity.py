@@ -1,0 +1,215 @@
+"""Model only what a scene needs: derive grid sizes, samples and background from the scene.
+
+A fixed large default (16 levels up to 2048^3, 2^19 rows per level) spends most of a CPU's time
+on resolution the images cannot show and on Adam updates of rows no sample touches. Instead:
+  * finest resolution ~ what one pixel covers at the scene's distance (the images cannot resolve
+    finer detail): extent / (distance / focal), times an oversampling factor;
+  * levels: a geometric series from a coarse base growing by about `level_growth` per level;
+  * table rows per level: no more than the finest level's vertices, and about the number of
+    finest cells a surface of the scene's size crosses (~ resolution^2), since empty cells only
+    collide harmlessly (instant-NGP's argument);
+  * samples: an occupancy grid for bounded scenes, marching steps about one finest cell long;
+    proposal networks otherwise, with scene contraction only for unbounded scenes;
+  * background: the dataset's constant colour for bounded scenes; otherwise the last sample's
+    interval reaches infinity and the field models the background itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping
+
+import gin
+import numpy as np
+
+from signerf_jax.errors import InputError
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneInfo:
+  """What the model must know about a scene (JSON-friendly; saved in every run directory).
+
+  Attributes:
+    bounds: ((x, y, z) min, (x, y, z) max) region modelled in detail, scene units.
+    kind: "bounded", "forward_facing" or "unbounded" (see `Dataset`).
+    near, far: ray range in scene units.
+    background_color: RGB seen through empty space in bounded scenes, or None.
+    num_images: training images (for appearance embeddings).
+    width, height: training image size in pixels.
+    pixel_footprint: scene units one pixel spans at the typical camera-to-scene distance.
+  """
+
+  bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
+  kind: str
+  near: float
+  far: float
+  background_color: tuple[float, float, float] | None
+  num_images: int
+  width: int
+  height: int
+  pixel_footprint: float
+
+  @classmethod
+  def from_dataset(cls, dataset) -> "SceneInfo":
+    bounds = np.asarray(dataset.scene_bounds, np.float64)
+    centre = bounds.mean(axis=0)
+    cameras = dataset.cameras
+    distances = np.linalg.norm(np.asarray(cameras.positions) - centre, axis=-1)
+    focal = np.asarray(cameras.fx, np.float64)
+    background = dataset.background_color
+    return cls(
+        bounds=(tuple(map(float, bounds[0])), tuple(map(float, bounds[1]))),
+        kind=dataset.scene_kind,
+        near=float(dataset.near),
+        far=float(dataset.far),
+        background_color=None if background is None else tuple(map(float, background)),
+        num_images=int(dataset.num_images),
+        width=int(dataset.width),
+        height=int(dataset.height),
+        pixel_footprint=float(np.median(distances / focal)),
+    )
+
+  @classmethod
+  def from_json(cls, value: Mapping[str, Any]) -> "SceneInfo":
+    value = dict(value)
+    value["bounds"] = tuple(tuple(map(float, corner)) for corner in value["bounds"])
+    if value["background_color"] is not None:
+      value["background_color"] = tuple(value["background_color"])
+    return cls(**value)
+
+  @property
+  def extent(self) -> float:
+    """Largest side of the bounds."""
+    return float(np.max(np.subtract(self.bounds[1], self.bounds[0])))
+
+
+@dataclasses.dataclass(frozen=True)
+class Capacity:
+  """Every size that shapes the model and its sampling (static under jit).
+
+  Attributes:
+    contract: map unbounded space into a finite cube (mip-NeRF 360) before the grid.
+    background: "constant" (the scene's colour) or "last_sample" (last interval to infinity).
+    sampler: "occupancy" (bounded scenes) or "proposal" (nerfacto-style proposal networks).
+    num_levels, base_resolution, finest_resolution, log2_table_size, features_per_level, hashed:
+      the radiance field's grid (see `encoding.grid_layout`).
+    mlp_width: hidden width of the radiance field's MLPs.
+    appearance_embedding: learn a per-image appearance code.
+    rays_per_batch: rays per training step.
+    march_steps: candidate samples per ray (occupancy sampler).
+    occupancy_resolution: occupancy grid cells per axis.
+    samples_per_batch: network evaluations per training step after skipping empty space
+      (occupancy sampler; rays that do not fit are left out of that step's loss).
+    proposal_samples: intervals per ray for each proposal network (proposal sampler).
+    samples_per_ray: intervals per ray for the radiance field (proposal sampler).
+    proposal_finest_resolution, proposal_log2_table_size: the proposal networks' grids.
+  """
+
+  contract: bool
+  background: str
+  sampler: str
+  num_levels: int
+  base_resolution: int
+  finest_resolution: int
+  log2_table_size: int
+  features_per_level: int = 2
+  hashed: bool = True
+  mlp_width: int = 64
+  appearance_embedding: bool = False
+  rays_per_batch: int = 8192
+  march_steps: int = 256
+  occupancy_resolution: int = 64
+  samples_per_batch: int = 65536
+  proposal_samples: tuple[int, ...] = (64, 32)
+  samples_per_ray: int = 24
+  proposal_finest_resolution: int = 128
+  proposal_log2_table_size: int = 16
+
+  @classmethod
+  def from_json(cls, value: Mapping[str, Any]) -> "Capacity":
+    value = dict(value)
+    value["proposal_samples"] = tuple(value["proposal_samples"])
+    return cls(**value)
+
+
+def _round_up(value: float, multiple: int) -> int:
+  return int(math.ceil(value / multiple) * multiple)
+
+
+@gin.configurable(denylist=["scene"])
+def derive_capacity(scene: SceneInfo,
+                    oversampling: float = 1.0,
+                    base_resolution: int = 16,
+                    level_growth: float = 1.5,
+                    features_per_level: int = 2,
+                    max_log2_table_size: int = 19,
+                    table_rows_per_surface_cell: float = 4.0,
+                    steps_per_finest_cell: float = 1.0,
+                    rays_per_batch: int | None = None,
+                    samples_per_batch: int = 65536,
+                    appearance_embedding: bool | None = None,
+                    overrides: Mapping[str, Any] | None = None) -> Capacity:
+  """The capacity a scene needs (gin knobs tune the rules; `overrides` pins any field).
+
+  Args:
+    scene: the scene's geometry and image size.
+    oversampling: finest grid cells per pixel footprint.
+    base_resolution: coarsest grid resolution.
+    level_growth: target resolution ratio between consecutive levels.
+    features_per_level: features per grid row.
+    max_log2_table_size: cap on rows per hashed level.
+    table_rows_per_surface_cell: rows per level = this * finest_resolution^2 (rounded to 2^k).
+    steps_per_finest_cell: marching step = finest cell size / this.
+    rays_per_batch: rays per training step; None derives it: with the occupancy sampler, enough
+      rays to fill the sample budget at 8 occupied samples per ray (typical once empty space is
+      pruned; rays that overflow the budget only cost their grid lookups); with proposals,
+      enough rays for `samples_per_batch` radiance-field samples.
+    samples_per_batch: radiance-field samples per training step.
+    appearance_embedding: None = only for real captures (forward-facing / unbounded scenes).
+    overrides: Capacity fields to force, e.g. a fixed large configuration for comparison.
+  """
+  if scene.pixel_footprint <= 0 or not math.isfinite(scene.pixel_footprint):
+    raise InputError(f"pixel footprint {scene.pixel_footprint} is not positive", None,
+                     "pixel_footprint")
+  bounded = scene.kind == "bounded"
+  contract = scene.kind == "unbounded"
+  inner_cells = oversampling * scene.extent / scene.pixel_footprint
+  # Contraction squeezes the inner box into half of the grid's side.
+  finest = max(base_resolution, _round_up(2 * inner_cells if contract else inner_cells, 8))
+  num_levels = 1 + max(0, math.ceil(math.log(finest / base_resolution) / math.log(level_growth)))
+  vertices_log2 = math.ceil(math.log2((finest + 1)**3))
+  surface_log2 = math.ceil(math.log2(table_rows_per_surface_cell * finest**2))
+  log2_table_size = max(12, min(max_log2_table_size, surface_log2, vertices_log2))
+
+  cell = scene.extent / finest
+  diagonal = math.sqrt(3.0) * scene.extent
+  march_steps = _round_up(diagonal / (cell / steps_per_finest_cell), 8)
+  # About what a coarse pixel footprint covers per cell, capped where updates get expensive.
+  occupancy_resolution = int(np.clip(_round_up(finest / 2, 16), 32, 128))
+  # Proposal sampling: more samples for larger images, within nerfacto's ranges.
+  pixels_scale = math.sqrt(scene.width * scene.height) / 256.0
+  samples_per_ray = int(np.clip(_round_up(24 * pixels_scale, 8), 16, 48))
+  if rays_per_batch is None:
+    per_ray = 8 if bounded else samples_per_ray
+    rays_per_batch = max(256, samples_per_batch // per_ray // 256 * 256)
+  capacity = Capacity(
+      contract=contract,
+      background="constant" if bounded and scene.background_color is not None else "last_sample",
+      sampler="occupancy" if bounded else "proposal",
+      num_levels=num_levels,
+      base_resolution=base_resolution,
+      finest_resolution=finest,
+      log2_table_size=log2_table_size,
+      features_per_level=features_per_level,
+      appearance_embedding=(not bounded) if appearance_embedding is None else appearance_embedding,
+      rays_per_batch=rays_per_batch,
+      march_steps=march_steps,
+      occupancy_resolution=occupancy_resolution,
+      samples_per_batch=samples_per_batch,
+      proposal_samples=(2 * samples_per_ray, samples_per_ray),
+      samples_per_ray=samples_per_ray,
+      proposal_finest_resolution=min(finest, 256),
+      proposal_log2_table_size=min(log2_table_size, 17),
+  )
+  return dataclasses.replace(capacity, **dict(overrides or {}))

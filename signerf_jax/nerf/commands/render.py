@@ -1,0 +1,36 @@
+"""`signerf render`: render a trained run's views (colour PNG, depth EXR) and a camera-path video."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from signerf_jax.nerf import evaluate, render
+from signerf_jax.nerf.commands import load_recorded_dataset
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+  parser.add_argument("--run", required=True, help="run directory written by `signerf train`")
+  parser.add_argument("--out", default=None, help="output directory (default RUN/renders)")
+  parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
+                      help="which dataset views to render")
+  parser.add_argument("--video", action="store_true", help="also render a camera-path video")
+  parser.add_argument("--frames", type=int, default=60, help="video length in frames")
+  parser.add_argument("--chunk_size", type=int, default=4096, help="rays rendered at once")
+
+
+def run(args: argparse.Namespace) -> int:
+  trained = evaluate.load_run(args.run)
+  out = Path(args.out) if args.out else Path(args.run) / "renders"
+  dataset = load_recorded_dataset(trained.description, args.split)
+  outputs = render.render_cameras(trained.model, trained.variables, dataset.cameras,
+                                  args.chunk_size)
+  render.write_renders(out / args.split, dataset.image_names, outputs)
+  message = f"{dataset.num_images} {args.split} views in {out / args.split}"
+  if args.video:
+    path_cameras = render.orbit_cameras(trained.model, dataset.cameras, args.frames)
+    frames = render.render_cameras(trained.model, trained.variables, path_cameras,
+                                   args.chunk_size)["rgb"]
+    message += f", video {render.write_video(out / 'video.mp4', frames)}"
+  print(f"signerf render: {message}")
+  return 0

@@ -1,0 +1,130 @@
+"""Thin Flax fields: grid encoding -> small MLPs -> density (and colour).
+
+All positions are in the unit cube [0, 1]^3 (the caller maps scene or contracted coordinates
+there); directions are unit world-space vectors.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from signerf_jax.nerf.encoding import GridLayout, HashGridEncoding, spherical_harmonics
+
+# exp's gradient is clamped at this input (instant-NGP's "trunc_exp"): one huge activation must not
+# blow up the update of the whole table.
+_EXP_GRADIENT_CLAMP = 15.0
+# Forward values stay below float32 max (the compositing clamps optical depth anyway).
+_EXP_VALUE_CLAMP = 80.0
+
+
+@jax.custom_jvp
+def truncated_exp(x):
+  """exp(x) (capped at exp(80)) with its derivative evaluated at min(x, 15)."""
+  return jnp.exp(jnp.minimum(x, _EXP_VALUE_CLAMP))
+
+
+@truncated_exp.defjvp
+def _truncated_exp_jvp(primals, tangents):
+  (x,), (x_dot,) = primals, tangents
+  return truncated_exp(x), x_dot * jnp.exp(jnp.minimum(x, _EXP_GRADIENT_CLAMP))
+
+
+class MLP(nn.Module):
+  """ReLU layers of `width` then a linear output layer."""
+
+  width: int
+  num_hidden_layers: int
+  output_dim: int
+
+  @nn.compact
+  def __call__(self, x):
+    for _ in range(self.num_hidden_layers):
+      x = nn.relu(nn.Dense(self.width)(x))
+    return nn.Dense(self.output_dim)(x)
+
+
+class DensityField(nn.Module):
+  """Density only (proposal networks): grid -> tiny MLP -> exp.
+
+  Attributes:
+    layout: the grid.
+    width: hidden width.
+    initial_density: density of the untrained field (see `RadianceField`).
+  """
+
+  layout: GridLayout
+  width: int = 16
+  initial_density: float = 1.0
+
+  @nn.compact
+  def __call__(self, points):
+    """points: [..., 3] unit cube -> [...] densities >= 0."""
+    raw = MLP(self.width, 1, 1)(HashGridEncoding(self.layout)(points))
+    return truncated_exp(raw[..., 0] + jnp.log(self.initial_density))
+
+
+class RadianceField(nn.Module):
+  """Density from position; colour from a geometry feature, view direction and (optionally) a
+  per-image appearance embedding (NeRF-W style, for real captures with varying exposure).
+
+  Attributes:
+    layout: the position encoding's grid.
+    width: hidden width of both MLPs.
+    geometry_features: features passed from the density MLP to the colour MLP.
+    color_layers: hidden layers of the colour MLP.
+    sh_degree: spherical-harmonics degree of the direction encoding (degree**2 channels).
+    num_appearance_embeddings: number of training images with an embedding (0 = off).
+    appearance_features: embedding size.
+    initial_density: density of the untrained field (its raw output is ~0), in 1 / scene units.
+      Too thick and the scene starts as fog the colour MLP paints in the background colour; too
+      thin and surfaces need hundreds of steps to become opaque (soft surfaces, wrong depth).
+  """
+
+  layout: GridLayout
+  width: int = 64
+  geometry_features: int = 15
+  color_layers: int = 2
+  sh_degree: int = 4
+  num_appearance_embeddings: int = 0
+  appearance_features: int = 8
+  initial_density: float = 1.0
+
+  def setup(self):
+    self.encoding = HashGridEncoding(self.layout)
+    self.density_mlp = MLP(self.width, 1, 1 + self.geometry_features)
+    self.color_mlp = MLP(self.width, self.color_layers, 3)
+    if self.num_appearance_embeddings:
+      self.appearance = nn.Embed(self.num_appearance_embeddings, self.appearance_features,
+                                 embedding_init=nn.initializers.zeros)
+
+  def _geometry(self, points):
+    raw = self.density_mlp(self.encoding(points))
+    return truncated_exp(raw[..., 0] + jnp.log(self.initial_density)), raw[..., 1:]
+
+  def density(self, points):
+    """points: [..., 3] unit cube -> [...] densities."""
+    return self._geometry(points)[0]
+
+  def __call__(self, points, directions, appearance_indices=None):
+    """Density and colour.
+
+    Args:
+      points: [..., 3] unit cube.
+      directions: [..., 3] unit vectors.
+      appearance_indices: None or [...] int32 image index; negative = no embedding (novel views).
+    Returns:
+      density [...] >= 0 and rgb [..., 3] in [0, 1].
+    """
+    density, geometry = self._geometry(points)
+    inputs: Sequence[jax.Array] = [geometry, spherical_harmonics(directions, self.sh_degree)]
+    if self.num_appearance_embeddings:
+      indices = jnp.zeros(points.shape[:-1], jnp.int32) if appearance_indices is None else (
+          appearance_indices)
+      embedding = self.appearance(jnp.clip(indices, 0, self.num_appearance_embeddings - 1))
+      inputs.append(embedding * (indices >= 0)[..., None])
+    rgb = nn.sigmoid(self.color_mlp(jnp.concatenate(inputs, axis=-1)))
+    return density, rgb

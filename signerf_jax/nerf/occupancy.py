@@ -1,0 +1,101 @@
+"""An occupancy grid (instant-NGP) that lets bounded scenes skip empty space under static shapes.
+
+The grid stores, per cell of the scene box, a running maximum of the field's density (decayed
+at each update). Ray marching proposes a fixed number of steps per ray; steps in cells whose
+density is too low to matter are dropped, and the surviving samples are compacted into a
+fixed-size buffer with `jnp.nonzero(size=...)` so the network only sees useful samples.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Cells not yet evaluated hold this value and count as occupied (densities are >= 0).
+UNVISITED = -1.0
+
+
+def initial_grid(resolution: int) -> jax.Array:
+  """[R, R, R] float32 grid with every cell unvisited (all occupied)."""
+  return jnp.full((resolution,) * 3, UNVISITED, jnp.float32)
+
+
+def density_threshold(grid, step: float, min_alpha: float):
+  """Density below which a sample of length `step` has alpha < min_alpha (instant-NGP also caps
+  the threshold at the mean density so that young, uniformly low fields still prune)."""
+  visited = grid >= 0.0
+  mean = jnp.sum(jnp.where(visited, grid, 0.0)) / jnp.maximum(jnp.sum(visited), 1)
+  return jnp.minimum(-np.log1p(-min_alpha) / step, mean)
+
+
+def occupied_cells(grid, step: float, min_alpha: float):
+  """[R, R, R] bool: cells whose samples must be evaluated."""
+  return (grid < 0.0) | (grid > density_threshold(grid, step, min_alpha))
+
+
+def lookup(occupied, unit_points):
+  """Occupancy at points in the unit cube.
+
+  Args:
+    occupied: [R, R, R] bool.
+    unit_points: [..., 3] in [0, 1]^3 (clamped).
+  Returns:
+    [...] bool.
+  """
+  resolution = occupied.shape[0]
+  cells = jnp.clip(jnp.floor(unit_points * resolution), 0, resolution - 1).astype(jnp.int32)
+  # One flat gather is ~2x faster on CPU than a 3-D gather.
+  flat = (cells[..., 0] * resolution + cells[..., 1]) * resolution + cells[..., 2]
+  return occupied.reshape(-1)[flat]
+
+
+def update(grid, density_fn: Callable[[jax.Array], jax.Array], key, update_index,
+           cells_per_update: int, decay: float):
+  """Re-evaluates a slice of cells (cycling through all of them) at a random point inside each.
+
+  Evaluated cells become max(decay * old, new) (new alone when unvisited); the others keep their
+  value, so a cell is never judged empty before the field has been asked about it.
+
+  Args:
+    grid: [R, R, R] float32.
+    density_fn: [P, 3] unit-cube points -> [P] densities.
+    key: PRNG key for the in-cell jitter.
+    update_index: int32 scalar, how many updates came before (selects the slice).
+    cells_per_update: P, static.
+    decay: per-update decay of the running maximum.
+  Returns:
+    the updated grid.
+  """
+  resolution = grid.shape[0]
+  num_cells = resolution**3
+  count = min(cells_per_update, num_cells)
+  start = (update_index.astype(jnp.int32) * count) % num_cells
+  flat = (start + jnp.arange(count, dtype=jnp.int32)) % num_cells
+  cells = jnp.stack([flat // (resolution * resolution), (flat // resolution) % resolution,
+                     flat % resolution], axis=-1)
+  points = (cells + jax.random.uniform(key, cells.shape)) / resolution
+  density = jax.lax.stop_gradient(density_fn(points))
+  old = grid.reshape(-1)[flat]
+  new = jnp.where(old < 0.0, density, jnp.maximum(old * decay, density))
+  return grid.reshape(-1).at[flat].set(new).reshape(grid.shape)
+
+
+def compact(mask, size: int):
+  """Indices of the first `size` True entries of a flattened mask, padded with an invalid index.
+
+  Args:
+    mask: [R, N] bool (rays x steps).
+    size: static buffer size.
+  Returns:
+    indices: [size] int32 flat indices into mask (padding = mask.size, out of range).
+    valid: [size] bool.
+    ray_complete: [R] bool, True when all of the ray's True entries fit into the buffer.
+  """
+  flat = mask.reshape(-1)
+  (indices,) = jnp.nonzero(flat, size=size, fill_value=flat.shape[0])
+  valid = indices < flat.shape[0]
+  ends = jnp.cumsum(jnp.sum(mask, axis=-1))
+  return indices.astype(jnp.int32), valid, ends <= size

@@ -1,0 +1,143 @@
+"""Rendering whole images from a trained model: chunked (bounded memory, one compiled shape),
+plus camera paths and writing colour / depth / video files."""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax import camera, files
+from signerf_jax.nerf import model as nerf_model
+
+# Outputs copied back per pixel (weights stay on device: they are per sample).
+IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance")
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _render_chunk(model: nerf_model.NerfModel, variables, rays: camera.Rays, start, chunk_size):
+  """Renders rays[start:start + chunk_size] (a traced start: one compilation for all chunks)."""
+  chunk = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, chunk_size), rays)
+  outputs, _ = nerf_model.render_rays(model, variables, chunk, jax.random.PRNGKey(0),
+                                      training=False)
+  return {name: outputs[name] for name in IMAGE_OUTPUTS}
+
+
+# Jitted so that repeated calls reuse one compilation (eagerly, undistortion's loop recompiles).
+_image_rays = jax.jit(camera.image_rays)
+
+
+def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Rays,
+                        chunk_size: int = 4096) -> dict[str, np.ndarray]:
+  """Renders any number of rays in fixed-size chunks (the last one padded), so memory stays
+  bounded and every chunk reuses one compiled function.
+
+  Args:
+    rays: Rays of any shape [...].
+  Returns:
+    numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance [...].
+  """
+  shape = rays.shape
+  flat = rays.reshape(-1)
+  count = flat.shape[0]
+  padded = int(np.ceil(count / chunk_size)) * chunk_size
+  flat = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - count, 0)]),
+                      flat)
+  pieces = [jax.device_get(_render_chunk(model, variables, flat, start, chunk_size))
+            for start in range(0, padded, chunk_size)]
+  return {name: np.concatenate([piece[name] for piece in pieces])[:count].reshape(
+      shape + pieces[0][name].shape[1:]) for name in IMAGE_OUTPUTS}
+
+
+def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
+                   chunk_size: int = 4096) -> dict[str, np.ndarray]:
+  """Renders every camera.
+
+  Returns:
+    rgb [N, H, W, 3] in [0, 1]; accumulation [N, H, W]; depth, median_depth [N, H, W] z-depth and
+    distance [N, H, W] ray distance, in scene units (the far bound where nothing was hit).
+  """
+  frames = [render_rays_chunked(model, variables, _image_rays(cameras, index), chunk_size)
+            for index in range(cameras.num_cameras)]
+  return {name: np.stack([frame[name] for frame in frames]) for name in IMAGE_OUTPUTS}
+
+
+def orbit_cameras(model: nerf_model.NerfModel, reference: camera.Cameras, num_frames: int
+                  ) -> camera.Cameras:
+  """A camera path through the scene, with the intrinsics of the first reference camera.
+
+  Bounded and unbounded scenes: one turn around the bounds' centre at the reference cameras'
+  mean distance and height, about the mean up vector. Forward-facing scenes: a small circle in
+  the mean camera's image plane, looking at the scene centre.
+  """
+  positions = np.asarray(reference.positions)
+  centre = np.mean(np.asarray(model.scene.bounds), axis=0)
+  up = np.mean(np.asarray(reference.camera_to_world)[:, :, 1], axis=0)
+  up = up / np.linalg.norm(up)
+  angles = np.linspace(0.0, 2.0 * np.pi, num_frames, endpoint=False)
+  if model.scene.kind == "forward_facing":
+    mean_pose = np.asarray(reference.camera_to_world).mean(axis=0)
+    right, camera_up = mean_pose[:, 0], mean_pose[:, 1]
+    radius = 0.5 * np.std(positions @ right) + 0.5 * np.std(positions @ camera_up)
+    eyes = (positions.mean(axis=0) + radius * (np.cos(angles)[:, None] * right +
+                                               np.sin(angles)[:, None] * camera_up))
+    target = positions.mean(axis=0) - mean_pose[:, 2] * np.linalg.norm(
+        centre - positions.mean(axis=0))
+  else:
+    offsets = positions - centre
+    height = np.mean(offsets @ up)
+    radius = np.mean(np.linalg.norm(offsets - np.outer(offsets @ up, up), axis=-1))
+    first = offsets[0] - (offsets[0] @ up) * up
+    first = first / max(np.linalg.norm(first), 1e-9)
+    second = np.cross(up, first)
+    eyes = centre + height * up + radius * (np.cos(angles)[:, None] * first +
+                                            np.sin(angles)[:, None] * second)
+    target = centre
+  camera_to_world = camera.look_at(eyes.astype(np.float32),
+                                   np.broadcast_to(target, eyes.shape).astype(np.float32),
+                                   up.astype(np.float32))
+  first_camera = reference.take([0])
+  return camera.Cameras.create(np.asarray(camera_to_world), first_camera.fx[0], first_camera.fy[0],
+                               first_camera.cx[0], first_camera.cy[0], width=reference.width,
+                               height=reference.height)
+
+
+class _CodecUnavailable(Exception):
+  pass
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: int = 24) -> Path:
+  """Writes RGB frames [T, H, W, 3] in [0, 1] as an mp4 (mp4v); if this OpenCV build has no mp4
+  encoder, as a Motion-JPEG .avi next to it. Written atomically; returns the path written."""
+  frames = np.round(np.clip(np.asarray(frames), 0, 1) * 255).astype(np.uint8)
+  height, width = frames.shape[1:3]
+  for suffix, codec in ((".mp4", "mp4v"), (".avi", "MJPG")):
+    target = Path(path).with_suffix(suffix)
+    try:
+      with files.atomic_path(target) as temporary:
+        writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*codec), fps,
+                                 (width, height))
+        if not writer.isOpened():
+          raise _CodecUnavailable(codec)
+        for frame in frames:
+          writer.write(frame[..., ::-1])
+        writer.release()
+      return target
+    except _CodecUnavailable:
+      continue
+  raise OSError(f"OpenCV can write neither mp4 nor avi video here ({path})")
+
+
+def write_renders(directory: str | os.PathLike, names, outputs: dict[str, np.ndarray]) -> None:
+  """Writes per view: <name>.png (colour), <name>.depth.exr (z-depth), <name>.accumulation.png."""
+  directory = Path(directory)
+  for index, name in enumerate(names):
+    stem = Path(name).with_suffix("").as_posix().replace("/", "_")
+    files.write_image(directory / f"{stem}.png", outputs["rgb"][index])
+    files.write_exr(directory / f"{stem}.depth.exr", outputs["depth"][index])
+    files.write_image(directory / f"{stem}.accumulation.png", outputs["accumulation"][index])

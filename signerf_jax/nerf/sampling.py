@@ -1,0 +1,148 @@
+"""Where along each ray to evaluate the field: box intersection, stratified and PDF sampling,
+scene contraction.
+
+Every function keeps static shapes: a ray gets a fixed number of interval *edges* t [..., N + 1]
+(sorted, metric distance along the unit direction); samples live at interval midpoints.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from signerf_jax import math as safe_math
+
+# Distances are clamped here so points and midpoints stay finite when the far bound is infinite.
+MAX_DISTANCE = 1e10
+
+
+def intersect_aabb(origins, directions, bounds):
+  """Entry and exit distances of rays through an axis-aligned box (slab method).
+
+  Axis-parallel rays are handled by clamping 1 / direction to a huge finite value (instead of
+  inf, which turns `0 * inf` into nan for origins on a slab plane).
+
+  Args:
+    origins, directions: [..., 3].
+    bounds: [2, 3] (min corner, max corner).
+  Returns:
+    t_near, t_far: [...] with 0 <= t_near <= t_far; rays that miss have t_near == t_far.
+    hit: [...] bool, True where the ray passes through the box's interior ahead of the origin.
+  """
+  bounds = jnp.asarray(bounds, jnp.float32)
+  inverse = safe_math.safe_div(1.0, directions)
+  t_low = (bounds[0] - origins) * inverse
+  t_high = (bounds[1] - origins) * inverse
+  t_enter = jnp.max(jnp.minimum(t_low, t_high), axis=-1)
+  t_exit = jnp.min(jnp.maximum(t_low, t_high), axis=-1)
+  t_near = jnp.clip(t_enter, 0.0, MAX_DISTANCE)
+  t_far = jnp.clip(t_exit, 0.0, MAX_DISTANCE)
+  hit = t_far > t_near
+  return t_near, jnp.maximum(t_far, t_near), hit
+
+
+def stratified_edges(key, t_near, t_far, num_intervals: int, randomized: bool):
+  """Edges splitting [t_near, t_far] into equal intervals, jittered as one comb per ray.
+
+  Args:
+    key: PRNG key (used only when randomized).
+    t_near, t_far: [...] ray bounds.
+    num_intervals: N.
+    randomized: shift each ray's comb by a uniform fraction of an interval (training); the edges
+      stay inside [t_near, t_far].
+  Returns:
+    [..., N + 1] sorted edges.
+  """
+  fractions = jnp.linspace(0.0, 1.0, num_intervals + 1)
+  if randomized:
+    shift = jax.random.uniform(key, t_near.shape + (1,)) / num_intervals
+    fractions = jnp.clip(fractions + shift - 0.5 / num_intervals, 0.0, 1.0)
+  return t_near[..., None] + (t_far - t_near)[..., None] * fractions
+
+
+def marching_edges(key, t_near, t_far, step: float, num_steps: int, randomized: bool):
+  """Fixed-size steps from t_near, clamped to t_far (intervals past the exit have length 0).
+
+  Constant steps (as in instant-NGP) make every sample cover the same distance, so the occupancy
+  grid's "is this sample's alpha negligible" test uses one threshold for all rays.
+
+  Returns:
+    [..., num_steps + 1] sorted edges.
+  """
+  offsets = jnp.arange(num_steps + 1, dtype=jnp.float32)
+  if randomized:
+    offsets = offsets + jax.random.uniform(key, t_near.shape + (1,)) - 0.5
+  edges = t_near[..., None] + step * jnp.maximum(offsets, 0.0)
+  return jnp.minimum(edges, t_far[..., None])
+
+
+def distance_to_spacing(t, scale):
+  """mip-NeRF 360's spacing s = g(t / scale): linear up to `scale`, then in inverse distance.
+
+  Maps [0, inf] onto [0, 2]: uniform steps in s sample the inner region linearly and the distant
+  background in disparity, as the contraction expects.
+  """
+  x = t / scale
+  return jnp.where(x < 1.0, x, 2.0 - safe_math.safe_div(1.0, x))
+
+
+def spacing_to_distance(s, scale):
+  """Inverse of `distance_to_spacing`; s = 2 maps to MAX_DISTANCE instead of inf."""
+  x = jnp.where(s < 1.0, s, safe_math.safe_div(1.0, 2.0 - s))
+  return jnp.minimum(x * scale, MAX_DISTANCE)
+
+
+def spaced_edges(key, t_near, t_far, num_intervals: int, randomized: bool, scale: float):
+  """Stratified edges uniform in mip-NeRF 360 spacing (for contracted, unbounded scenes)."""
+  s_near = distance_to_spacing(t_near, scale)
+  s_far = distance_to_spacing(t_far, scale)
+  s_edges = stratified_edges(key, s_near, s_far, num_intervals, randomized)
+  return spacing_to_distance(s_edges, scale)
+
+
+def sample_pdf(key, edges, weights, num_intervals: int, randomized: bool,
+               padding: float = 0.01):
+  """Resamples interval edges from the piecewise-constant distribution `weights` (inverse CDF).
+
+  Args:
+    key: PRNG key (used only when randomized).
+    edges: [..., M + 1] sorted edges of the coarse intervals.
+    weights: [..., M] non-negative weights (need not sum to 1).
+    num_intervals: N, the number of new intervals.
+    randomized: jitter the quantiles by a common per-ray offset (training).
+    padding: added to every weight so that empty-looking space keeps some samples (nerfstudio's
+      histogram padding); also makes the CDF well defined for all-zero weights.
+  Returns:
+    [..., N + 1] sorted edges inside [edges[..., 0], edges[..., -1]].
+  """
+  weights = jax.lax.stop_gradient(weights) + padding / weights.shape[-1]
+  cdf = jnp.cumsum(weights, axis=-1) / jnp.sum(weights, axis=-1, keepdims=True)
+  cdf = jnp.concatenate([jnp.zeros_like(cdf[..., :1]), jnp.minimum(cdf[..., :-1], 1.0),
+                         jnp.ones_like(cdf[..., :1])], axis=-1)
+  quantiles = jnp.linspace(0.0, 1.0, num_intervals + 1)
+  if randomized:
+    shift = jax.random.uniform(key, edges.shape[:-1] + (1,)) / num_intervals
+    quantiles = jnp.clip(quantiles + shift - 0.5 / num_intervals, 0.0, 1.0)
+  else:
+    quantiles = jnp.broadcast_to(quantiles, edges.shape[:-1] + (num_intervals + 1,))
+  interpolate = jnp.vectorize(jnp.interp, signature="(n),(m),(m)->(n)")
+  return jax.lax.stop_gradient(interpolate(quantiles, cdf, edges))
+
+
+def contract(points):
+  """mip-NeRF 360 contraction with the L-inf norm (as nerfstudio for grids): [-1, 1]^3 stays,
+  everything else is squeezed into [-2, 2]^3.
+
+  Args:
+    points: [..., 3] in units where the modelled inner region is [-1, 1]^3.
+  Returns:
+    [..., 3] in [-2, 2]^3.
+  """
+  norm = jnp.max(jnp.abs(points), axis=-1, keepdims=True)
+  scale = (2.0 - safe_math.safe_div(1.0, norm)) * safe_math.safe_div(1.0, norm)
+  return jnp.where(norm <= 1.0, points, points * scale)
+
+
+def midpoints(edges):
+  """[..., N + 1] edges -> [..., N] interval centres."""
+  return 0.5 * (edges[..., 1:] + edges[..., :-1])

@@ -1,0 +1,369 @@
+"""Training: a jit-compiled step over a donated `TrainState`, checkpointed and resumable.
+
+A run directory holds:
+  config.gin          every gin binding in force
+  model.json          scene geometry, capacity and where the data came from
+  checkpoint.msgpack  the latest TrainState plus step / seconds trained
+A resumed run continues exactly as an uninterrupted one: each step's randomness is
+`fold_in(state.key, state.step)`, so nothing depends on how the run was split.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import gin
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import tqdm
+from flax import struct
+
+from signerf_jax import camera, configs, files
+from signerf_jax.data.dataset import Dataset
+from signerf_jax.errors import InputError
+from signerf_jax.nerf import checkpoint, losses
+from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.capacity import Capacity, SceneInfo, derive_capacity
+
+MODEL_FILE = "model.json"
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """Optimisation settings.
+
+  Attributes:
+    steps: training steps (the learning-rate schedule spans them).
+    max_seconds: stop earlier once this much wall-clock training time is spent (None = no limit).
+    learning_rate: peak Adam learning rate (after a linear warm-up).
+    final_learning_rate: learning rate at `steps` (exponential decay).
+    warmup_steps: linear warm-up length.
+    gradient_clip_norm: global-norm gradient clipping.
+    adam_eps: Adam's epsilon (tiny, as instant-NGP: most table rows see tiny gradients).
+    occupancy_update_every: steps between occupancy-grid refreshes.
+    occupancy_warmup_steps: steps before the first refresh (every cell is sampled until then).
+      Pruning an untrained field removes cells at random, and a pruned cell gets no samples, so
+      no gradient to become dense where the scene needs it.
+    interlevel_loss_weight: weight of the proposal loss.
+    distortion_loss_weight: weight of mip-NeRF 360's distortion loss (crisper surfaces).
+    checkpoint_every_steps, checkpoint_every_seconds: checkpoint when either is reached.
+    seed: PRNG seed of the run.
+  """
+
+  steps: int = 5000
+  max_seconds: float | None = None
+  learning_rate: float = 1e-2
+  final_learning_rate: float = 1e-3
+  warmup_steps: int = 50
+  gradient_clip_norm: float = 1.0
+  adam_eps: float = 1e-15
+  occupancy_update_every: int = 16
+  occupancy_warmup_steps: int = 32
+  interlevel_loss_weight: float = 1.0
+  distortion_loss_weight: float = 0.002
+  checkpoint_every_steps: int = 1000
+  checkpoint_every_seconds: float = 120.0
+  seed: int = 0
+
+
+@struct.dataclass
+class TrainState:
+  """Everything a step reads and writes (donated to the step, so updated in place)."""
+
+  step: jax.Array  # int32 scalar
+  variables: dict[str, Any]
+  optimizer_state: optax.OptState
+  key: jax.Array  # the run's base key; step keys are fold_in(key, step)
+
+
+@struct.dataclass
+class TrainingData:
+  """Training images on device (not donated; the same every step).
+
+  Attributes:
+    images: [N, H, W, 3] float32.
+    cameras: N cameras.
+    pixel_weights: [N, H, W] float32 per-pixel loss weights (1 = normal, 0 = ignore).
+  """
+
+  images: jax.Array
+  cameras: camera.Cameras
+  pixel_weights: jax.Array
+
+  @classmethod
+  def from_dataset(cls, dataset: Dataset, pixel_weights=None) -> "TrainingData":
+    weights = np.ones(dataset.images.shape[:3], np.float32)
+    if dataset.masks is not None:
+      weights = weights * dataset.masks
+    if pixel_weights is not None:
+      pixel_weights = np.asarray(pixel_weights, np.float32)
+      if pixel_weights.shape != weights.shape:
+        raise InputError(f"pixel weights have shape {pixel_weights.shape}, the images "
+                         f"{weights.shape}", dataset.root or None, "pixel_weights")
+      weights = weights * pixel_weights
+    return cls(jnp.asarray(dataset.images, jnp.float32), jax.tree.map(jnp.asarray,
+                                                                      dataset.cameras),
+               jnp.asarray(weights))
+
+
+def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+  decay_steps = max(config.steps - config.warmup_steps, 1)
+  schedule = optax.join_schedules([
+      optax.linear_schedule(config.learning_rate * 0.01, config.learning_rate,
+                            max(config.warmup_steps, 1)),
+      optax.exponential_decay(config.learning_rate, decay_steps,
+                              config.final_learning_rate / config.learning_rate,
+                              end_value=config.final_learning_rate),
+  ], [max(config.warmup_steps, 1)])
+  return optax.chain(optax.clip_by_global_norm(config.gradient_clip_norm),
+                     optax.adam(schedule, b1=0.9, b2=0.99, eps=config.adam_eps))
+
+
+def init_state(model: nerf_model.NerfModel, config: TrainConfig, init_variables=None
+               ) -> TrainState:
+  """A fresh state, or one starting from `init_variables` (fine-tuning) with a new optimizer.
+
+  Fine-tuning starts from an empty occupancy grid (all cells sampled until the warm-up ends):
+  edited images may put content where the old scene was empty, and the old grid would never
+  sample it.
+  """
+  key = jax.random.PRNGKey(config.seed)
+  init_key, run_key = jax.random.split(key)
+  variables = nerf_model.init_variables(model, init_key)
+  if init_variables is not None:
+    variables = {**variables, "params": jax.tree.map(jnp.asarray, init_variables["params"])}
+  optimizer_state = make_optimizer(config).init(variables["params"])
+  return TrainState(jnp.int32(0), variables, optimizer_state, run_key)
+
+
+def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainState,
+               data: TrainingData) -> tuple[TrainState, dict[str, jax.Array]]:
+  """One optimisation step (pure; `make_train_step` jits it with the state donated).
+
+  Returns:
+    the new state and scalar statistics: loss, psnr (of the batch), complete_fraction (rays
+    that fit the sample budget), samples (network evaluations).
+  """
+  ray_key, render_key = jax.random.split(jax.random.fold_in(state.key, state.step))
+  rays, (index, row, column) = camera.random_rays(ray_key, data.cameras,
+                                                  model.capacity.rays_per_batch)
+  target = data.images[index, row, column]
+  pixel_weight = data.pixel_weights[index, row, column]
+
+  def loss_fn(params):
+    outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, rays,
+                                          render_key, training=True)
+    ray_weights = pixel_weight * outputs["ray_complete"]
+    mse = losses.weighted_mse(outputs["rgb"], target, ray_weights)
+    loss = mse + config.distortion_loss_weight * losses.distortion_loss(
+        aux["edges"], outputs["weights"], model.scene.extent, ray_weights)
+    if aux["proposals"]:
+      loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
+          aux["edges"], outputs["weights"], aux["proposals"], ray_weights)
+    statistics = {"loss": loss, "mse": mse, "samples": aux["samples_evaluated"],
+                  "complete_fraction": jnp.mean(outputs["ray_complete"])}
+    return loss, statistics
+
+  gradients, statistics = jax.grad(loss_fn, has_aux=True)(state.variables["params"])
+  updates, optimizer_state = make_optimizer(config).update(gradients, state.optimizer_state,
+                                                           state.variables["params"])
+  variables = {**state.variables, "params": optax.apply_updates(state.variables["params"],
+                                                                updates)}
+  statistics["psnr"] = -10.0 * jnp.log10(jnp.maximum(statistics.pop("mse"), 1e-10))
+  return TrainState(state.step + 1, variables, optimizer_state, state.key), statistics
+
+
+def occupancy_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainState
+                   ) -> TrainState:
+  """Refreshes the occupancy grid (due every `occupancy_update_every` steps after warm-up).
+
+  A separate jitted function called between steps: inside the step, a `lax.cond` around it made
+  every step ~10x slower on CPU (XLA copies the operands of both branches).
+  """
+  key = jax.random.fold_in(jax.random.fold_in(state.key, state.step), 1)
+  update_index = state.step // config.occupancy_update_every
+  variables = nerf_model.update_occupancy(model, state.variables, key, update_index)
+  return state.replace(variables=variables)
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted_steps(model: nerf_model.NerfModel, config: TrainConfig):
+  """The jitted step and occupancy refresh, shared by every Trainer of one (model, config), so
+  that resuming or restarting a run in the same process compiles nothing new."""
+  step_fn = jax.jit(lambda state, data: train_step(model, config, state, data), donate_argnums=0)
+  occupancy_fn = jax.jit(lambda state: occupancy_step(model, config, state), donate_argnums=0)
+  return step_fn, occupancy_fn
+
+
+def make_train_step(model: nerf_model.NerfModel, config: TrainConfig
+                    ) -> Callable[[TrainState, TrainingData], tuple[TrainState, dict]]:
+  """One training step for this model and config: the occupancy refresh when it is due, then
+  `train_step`; both jitted with the state donated."""
+  step_fn, occupancy_fn = _jitted_steps(model, config)
+  if model.capacity.sampler != "occupancy":
+    return step_fn
+
+  def step_with_occupancy(state: TrainState, data: TrainingData):
+    step = int(state.step)
+    if step >= config.occupancy_warmup_steps and step % config.occupancy_update_every == 0:
+      state = occupancy_fn(state)
+    return step_fn(state, data)
+
+  return step_with_occupancy
+
+
+@dataclasses.dataclass
+class Trainer:
+  """A training run in memory: the model, its jitted step and the state, advanced in bursts.
+
+  `train` below is the usual entry point; benchmarks use a Trainer directly to evaluate between
+  bursts without recompiling.
+  """
+
+  model: nerf_model.NerfModel
+  config: TrainConfig
+  data: TrainingData
+  state: TrainState
+  seconds_trained: float = 0.0
+  samples_trained: float = 0.0
+  last_statistics: dict[str, float] = dataclasses.field(default_factory=dict)
+
+  def __post_init__(self):
+    self._step_fn = make_train_step(self.model, self.config)
+
+  @property
+  def step(self) -> int:
+    return int(self.state.step)
+
+  def run(self, *, until_step: int | None = None, until_seconds: float | None = None,
+          run_dir: str | os.PathLike | None = None, progress: bool = True) -> dict[str, float]:
+    """Trains until `until_step` (default: config.steps) or `until_seconds` of total training
+    time, checkpointing into `run_dir` (if given) periodically and at the end.
+
+    Returns:
+      the last step's statistics (floats).
+    """
+    until_step = self.config.steps if until_step is None else until_step
+    limit = until_seconds if until_seconds is not None else self.config.max_seconds
+    statistics: dict[str, float] = {}
+    last_checkpoint_step, last_checkpoint_time = self.step, time.perf_counter()
+    bar = tqdm.tqdm(total=until_step, initial=self.step, disable=not progress, unit="step",
+                    dynamic_ncols=True)
+    smoothed_loss = None
+    while self.step < until_step and (limit is None or self.seconds_trained < limit):
+      started = time.perf_counter()
+      self.state, step_statistics = self._step_fn(self.state, self.data)
+      loss = float(step_statistics["loss"])  # Blocks, so the time below is the step's.
+      self.seconds_trained += time.perf_counter() - started
+      smoothed_loss = loss if smoothed_loss is None else 0.9 * smoothed_loss + 0.1 * loss
+      statistics = {name: float(value) for name, value in step_statistics.items()}
+      self.samples_trained += statistics["samples"]
+      bar.update(1)
+      if self.step % 10 == 0 or self.step == until_step:
+        bar.set_postfix(loss=f"{smoothed_loss:.4f}", psnr=f"{statistics['psnr']:.2f}",
+                        seconds=f"{self.seconds_trained:.0f}")
+      if run_dir is not None and (
+          self.step - last_checkpoint_step >= self.config.checkpoint_every_steps or
+          time.perf_counter() - last_checkpoint_time >= self.config.checkpoint_every_seconds):
+        self.save(run_dir)
+        last_checkpoint_step, last_checkpoint_time = self.step, time.perf_counter()
+    bar.close()
+    if run_dir is not None:
+      self.save(run_dir)
+    self.last_statistics = statistics or self.last_statistics
+    return self.last_statistics
+
+  def save(self, run_dir: str | os.PathLike) -> None:
+    checkpoint.save(run_dir, self.state, {"step": self.step,
+                                          "seconds_trained": self.seconds_trained,
+                                          "samples_trained": self.samples_trained})
+
+
+def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
+                     dataset: Dataset, data_options: dict[str, Any] | None = None) -> None:
+  files.write_json(Path(run_dir) / MODEL_FILE, {
+      "scene": dataclasses.asdict(model.scene),
+      "capacity": dataclasses.asdict(model.capacity),
+      "dataset": dataset.summary(),
+      "data_options": dict(data_options or {}),
+  })
+
+
+def read_model_file(run_dir: str | os.PathLike) -> tuple[nerf_model.NerfModel, dict[str, Any]]:
+  """The model of a run and the rest of model.json (dataset summary, data options)."""
+  path = Path(run_dir) / MODEL_FILE
+  description = files.read_json(path)
+  try:
+    model = nerf_model.NerfModel(SceneInfo.from_json(description["scene"]),
+                                 Capacity.from_json(description["capacity"]))
+  except (KeyError, TypeError) as error:
+    raise InputError(f"malformed model description ({error})", path) from None
+  return model, description
+
+
+def build_model(dataset: Dataset, capacity: Capacity | None = None) -> nerf_model.NerfModel:
+  """The model for a dataset, with capacity derived from it unless given."""
+  scene = SceneInfo.from_dataset(dataset)
+  return nerf_model.NerfModel(scene, capacity or derive_capacity(scene))
+
+
+def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
+                 config: TrainConfig | None = None, init_variables=None,
+                 pixel_weights=None) -> Trainer:
+  """A Trainer at step 0 (fresh, or fine-tuning from `init_variables`)."""
+  config = config or TrainConfig()
+  model = model or build_model(dataset)
+  return Trainer(model, config, TrainingData.from_dataset(dataset, pixel_weights),
+                 init_state(model, config, init_variables))
+
+
+def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
+          steps: int | None = None, max_seconds: float | None = None, pixel_weights=None,
+          model: nerf_model.NerfModel | None = None, config: TrainConfig | None = None,
+          data_options: dict[str, Any] | None = None, progress: bool = True) -> Trainer:
+  """Trains (or resumes, if `run_dir` has a checkpoint) a NeRF on `dataset`.
+
+  Args:
+    dataset: training views.
+    run_dir: where config.gin, model.json and the checkpoint go.
+    init_variables: start from these variables (fine-tuning; e.g. `load_run(...).variables`);
+      the model must then be the one they belong to (pass `model`).
+    steps, max_seconds: override TrainConfig.steps / max_seconds.
+    pixel_weights: optional [N, H, W] per-pixel loss weights (multiplied with dataset.masks).
+    model: the architecture (default: derived from the dataset).
+    config: training settings (default: gin-configured TrainConfig()).
+    data_options: how the data was loaded (root, downscale, ...), recorded for `signerf eval`.
+    progress: show a progress bar.
+  Returns:
+    the Trainer after training (model, state, seconds_trained).
+  """
+  config = config or TrainConfig()
+  overrides = {name: value for name, value in (("steps", steps), ("max_seconds", max_seconds))
+               if value is not None}
+  config = dataclasses.replace(config, **overrides)
+  run_dir = Path(run_dir)
+  if checkpoint.has_checkpoint(run_dir):
+    saved_model, _ = read_model_file(run_dir)
+    if model is not None and model != saved_model:
+      raise InputError("the run directory holds a different model", run_dir / MODEL_FILE)
+    model = saved_model
+  trainer = make_trainer(dataset, model=model, config=config, init_variables=init_variables,
+                         pixel_weights=pixel_weights)
+  run_dir.mkdir(parents=True, exist_ok=True)
+  configs.save_gin_config(run_dir)
+  if checkpoint.has_checkpoint(run_dir):
+    trainer.state, metadata = checkpoint.restore(run_dir, trainer.state)
+    trainer.seconds_trained = float(metadata.get("seconds_trained", 0.0))
+    trainer.samples_trained = float(metadata.get("samples_trained", 0.0))
+  else:
+    write_model_file(run_dir, trainer.model, dataset, data_options)
+  trainer.run(run_dir=run_dir, progress=progress)
+  return trainer

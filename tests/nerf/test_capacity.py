@@ -1,0 +1,74 @@
+import dataclasses
+
+import pytest
+
+from signerf_jax.errors import InputError
+from signerf_jax.nerf import capacity
+from signerf_jax.nerf.encoding import grid_layout
+
+LEGO_100 = capacity.SceneInfo(bounds=((-1, -1, -1), (1, 1, 1)), kind="bounded", near=1.0,
+                              far=4.4, background_color=(1, 1, 1), num_images=100, width=100,
+                              height=100, pixel_footprint=2.7 / 138.9)
+
+
+def test_bounded_scene_gets_an_occupancy_grid_no_contraction_and_its_background():
+  derived = capacity.derive_capacity(LEGO_100)
+  assert derived.sampler == "occupancy" and not derived.contract
+  assert derived.background == "constant" and not derived.appearance_embedding
+  # ~one finest cell per pixel footprint: 2 / 0.0194 ~ 103 cells.
+  assert 96 <= derived.finest_resolution <= 112
+
+
+def test_table_never_exceeds_the_finest_levels_vertices_and_grows_with_resolution():
+  small = capacity.derive_capacity(LEGO_100)
+  large = capacity.derive_capacity(dataclasses.replace(LEGO_100, width=800, height=800,
+                                                       pixel_footprint=2.7 / 1111))
+  assert large.finest_resolution >= 7 * small.finest_resolution
+  assert large.log2_table_size > small.log2_table_size
+  assert large.num_levels > small.num_levels and large.march_steps > small.march_steps
+  for derived in (small, large):
+    assert 2**derived.log2_table_size <= (derived.finest_resolution + 1)**3
+    layout = grid_layout(derived.num_levels, derived.base_resolution, derived.finest_resolution,
+                         derived.log2_table_size, derived.features_per_level)
+    assert layout.num_rows < 16 * 2**19  # far below the fixed large configuration
+
+
+@pytest.mark.parametrize("kind, contract", [("forward_facing", False), ("unbounded", True)])
+def test_real_scenes_use_proposals_and_contract_only_when_unbounded(kind, contract):
+  scene = dataclasses.replace(LEGO_100, kind=kind, background_color=None)
+  derived = capacity.derive_capacity(scene)
+  assert derived.sampler == "proposal" and derived.contract == contract
+  assert derived.background == "last_sample" and derived.appearance_embedding
+  if contract:  # the inner box takes half of the contracted grid
+    assert derived.finest_resolution >= 2 * capacity.derive_capacity(LEGO_100).finest_resolution - 8
+
+
+def test_overrides_pin_fields_and_bad_footprint_is_an_input_error():
+  pinned = capacity.derive_capacity(LEGO_100, overrides={"finest_resolution": 2048,
+                                                         "log2_table_size": 19})
+  assert (pinned.finest_resolution, pinned.log2_table_size) == (2048, 19)
+  with pytest.raises(InputError, match="pixel footprint"):
+    capacity.derive_capacity(dataclasses.replace(LEGO_100, pixel_footprint=0.0))
+
+
+def test_json_round_trip():
+  derived = capacity.derive_capacity(LEGO_100)
+  assert capacity.Capacity.from_json(dataclasses.asdict(derived)) == derived
+  assert capacity.SceneInfo.from_json(dataclasses.asdict(LEGO_100)) == dataclasses.replace(
+      LEGO_100, bounds=((-1.0,) * 3, (1.0,) * 3), background_color=(1, 1, 1))
+
+
+@pytest.mark.shared_data
+def test_capacity_of_the_benchmark_scenes(shared_data):
+  from signerf_jax.data import load_dataset  # pylint: disable=g-import-not-at-top
+
+  lego = capacity.SceneInfo.from_dataset(
+      load_dataset(shared_data / "nerf_synthetic" / "lego", downscale=8))
+  derived = capacity.derive_capacity(lego)
+  assert (lego.width, lego.height) == (100, 100) and derived.sampler == "occupancy"
+  assert 64 <= derived.finest_resolution <= 160 and derived.log2_table_size <= 17
+  fern = capacity.SceneInfo.from_dataset(load_dataset(shared_data / "llff" / "fern",
+                                                      downscale=16))
+  derived = capacity.derive_capacity(fern)
+  assert fern.kind == "forward_facing" and derived.sampler == "proposal"
+  assert not derived.contract and derived.appearance_embedding

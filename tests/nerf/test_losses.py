@@ -1,0 +1,70 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from signerf_jax.nerf import losses
+
+
+def brute_force_outer(edges, proposal_edges, proposal_weights):
+  """Mass of every proposal interval that overlaps each target interval."""
+  result = []
+  for start, end in zip(edges[:-1], edges[1:]):
+    overlap = (proposal_edges[1:] > start) & (proposal_edges[:-1] < end)
+    result.append(np.sum(proposal_weights[overlap]))
+  return np.array(result)
+
+
+def test_outer_weights_match_brute_force():
+  rng = np.random.default_rng(0)
+  for _ in range(5):
+    proposal_edges = np.sort(rng.uniform(0, 10, 9))
+    proposal_weights = rng.uniform(0, 1, 8)
+    edges = np.sort(rng.uniform(0.5, 9.5, 6))
+    np.testing.assert_allclose(
+        losses.outer_weights(jnp.asarray(edges), jnp.asarray(proposal_edges),
+                             jnp.asarray(proposal_weights)),
+        brute_force_outer(edges, proposal_edges, proposal_weights), atol=1e-6)
+
+
+def test_interlevel_loss_is_zero_when_the_proposal_covers_and_positive_otherwise():
+  edges = jnp.linspace(0, 1, 9)[None]
+  weights = jnp.array([[0, 0, 0.1, 0.7, 0.2, 0, 0, 0]])
+  covering = [(edges, weights)]
+  assert float(losses.interlevel_loss(edges, weights, covering, jnp.ones(1))) == pytest.approx(0)
+  missing = [(edges, jnp.roll(weights, 3, axis=-1))]
+  loss, gradient = jax.value_and_grad(
+      lambda w: losses.interlevel_loss(edges, weights, [(edges, w)], jnp.ones(1)))(missing[0][1])
+  assert float(loss) > 0.1
+  # The proposal is pushed up where the NeRF has mass it does not cover.
+  assert float(gradient[0, 3]) < 0
+  # A dropped ray (weight 0) contributes nothing.
+  assert float(losses.interlevel_loss(edges, weights, missing, jnp.zeros(1))) == 0
+
+
+def test_weighted_mse_ignores_zero_weight_rays():
+  predicted = jnp.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+  target = jnp.zeros((2, 3))
+  assert float(losses.weighted_mse(predicted, target, jnp.array([1.0, 0.0]))) == 0.0
+  assert float(losses.weighted_mse(predicted, target, jnp.array([1.0, 1.0]))) == pytest.approx(0.5)
+  assert np.isfinite(float(losses.weighted_mse(predicted, target, jnp.zeros(2))))
+
+
+def brute_force_distortion(edges, weights):
+  midpoints = 0.5 * (edges[1:] + edges[:-1])
+  pairwise = np.sum(weights[:, None] * weights[None, :] *
+                    np.abs(midpoints[:, None] - midpoints[None, :]))
+  return pairwise + np.sum(weights**2 * np.diff(edges)) / 3
+
+
+def test_distortion_loss_matches_pairwise_sum_and_prefers_concentrated_weights():
+  rng = np.random.default_rng(1)
+  edges = np.sort(rng.uniform(0, 4, 9))
+  weights = rng.uniform(0, 0.2, 8)
+  loss = losses.distortion_loss(jnp.asarray(edges)[None], jnp.asarray(weights)[None], 2.0,
+                                jnp.ones(1))
+  assert float(loss) == pytest.approx(brute_force_distortion(edges / 2, weights), rel=1e-5)
+  uniform_edges = jnp.linspace(0, 1, 9)[None]
+  spread = losses.distortion_loss(uniform_edges, jnp.full((1, 8), 1 / 8), 1.0, jnp.ones(1))
+  peaked = losses.distortion_loss(uniform_edges, jnp.eye(8)[3:4], 1.0, jnp.ones(1))
+  assert float(peaked) < float(spread)

@@ -1,0 +1,54 @@
+import json
+
+import numpy as np
+import pytest
+
+from signerf_jax import cli, files
+from signerf_jax.data import write_nerfstudio
+
+GIN_PARAMS = ["--gin_param", "derive_capacity.rays_per_batch = 512",
+              "--gin_param", "derive_capacity.samples_per_batch = 4096",
+              "--gin_param", "TrainConfig.occupancy_warmup_steps = 4",
+              "--gin_param", "TrainConfig.occupancy_update_every = 4"]
+
+
+@pytest.fixture(scope="module")
+def scene_dir(sphere, tmp_path_factory):
+  directory = tmp_path_factory.mktemp("sphere_scene")
+  write_nerfstudio(directory, sphere)
+  return directory
+
+
+def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
+  run = tmp_path / "run"
+  assert cli.main(["train", "--data", str(scene_dir), "--out", str(run), "--steps", "6",
+                   *GIN_PARAMS]) == 0
+  assert "6 steps" in capsys.readouterr().out
+  config = (run / "config.gin").read_text()
+  assert "derive_capacity.samples_per_batch = 4096" in config and "TrainConfig" in config
+  # Resuming with more steps continues from the checkpoint with the run's own configuration.
+  assert cli.main(["train", "--data", str(scene_dir), "--out", str(run), "--steps", "9"]) == 0
+  assert "9 steps" in capsys.readouterr().out
+
+  assert cli.main(["eval", "--run", str(run)]) == 0
+  lines = capsys.readouterr().out.strip().splitlines()
+  result = json.loads(lines[-1])
+  assert {"psnr", "ssim", "depth_mae", "seconds_trained"} <= set(result)
+  assert result["depth_mae"] is not None and result["seconds_trained"] > 0
+  assert files.read_json(run / "eval.json") == result
+
+  out = tmp_path / "renders"
+  assert cli.main(["render", "--run", str(run), "--out", str(out), "--video",
+                   "--frames", "3"]) == 0
+  pngs = sorted((out / "eval").glob("*.png"))
+  exrs = sorted((out / "eval").glob("*.depth.exr"))
+  assert len(exrs) == result["num_views"] and len(pngs) == 2 * len(exrs)
+  depth = files.read_exr(exrs[0])
+  assert depth.shape == (24, 24) and np.all(np.isfinite(depth))
+  video = [path for path in out.iterdir() if path.stem == "video"]
+  assert len(video) == 1 and video[0].stat().st_size > 0
+
+
+def test_eval_of_a_missing_run_is_an_input_error(tmp_path, capsys):
+  assert cli.main(["eval", "--run", str(tmp_path / "nothing")]) == 2
+  assert "nothing" in capsys.readouterr().err

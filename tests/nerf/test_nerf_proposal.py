@@ -1,0 +1,56 @@
+"""The proposal sampler (forward-facing / unbounded scenes) and the appearance embedding."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import SMALL_CONFIG, count_compilations
+
+from signerf_jax.nerf import capacity, evaluate, model as nerf_model, train
+
+
+@pytest.mark.parametrize("kind", ["unbounded", "forward_facing"])
+def test_proposal_sampler_trains_without_recompiling(sphere, kind):
+  dataset = dataclasses.replace(sphere, scene_kind=kind, background_color=None)
+  scene = capacity.SceneInfo.from_dataset(dataset)
+  derived = capacity.derive_capacity(scene, samples_per_batch=4096)
+  model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
+                                                          samples_per_ray=8, mlp_width=32))
+  assert model.capacity.sampler == "proposal" and model.capacity.contract == (kind == "unbounded")
+  trainer = train.make_trainer(dataset, model=model, config=SMALL_CONFIG)
+  initial = jax.device_get(trainer.state.variables["params"])
+  before, _ = evaluate.evaluate(model, trainer.state.variables, dataset.subset([0]))
+  trainer.run(until_step=2, progress=False)
+  with count_compilations() as compiled:
+    trainer.run(until_step=40, progress=False)
+  assert compiled == []
+  after, renders = evaluate.evaluate(model, trainer.state.variables, dataset.subset([0]))
+  assert after["psnr"] > before["psnr"] + 3, (before, after)
+  assert all(np.all(np.isfinite(value)) for value in renders.values())
+  # The interlevel loss trains every proposal network.
+  for name in ("proposal_0", "proposal_1"):
+    moved = [not np.array_equal(a, b) for a, b in zip(
+        jax.tree.leaves(initial[name]), jax.tree.leaves(trainer.state.variables["params"][name]))]
+    assert any(moved), name
+
+
+def test_appearance_embedding_is_per_image_and_off_for_novel_views(sphere):
+  dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
+  scene = capacity.SceneInfo.from_dataset(dataset)
+  model = nerf_model.NerfModel(scene, capacity.derive_capacity(scene))
+  assert model.capacity.appearance_embedding
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  table = variables["params"]["field"]["appearance"]["embedding"]
+  variables["params"]["field"]["appearance"]["embedding"] = jax.random.normal(
+      jax.random.PRNGKey(1), table.shape)
+  points = jnp.full((3, 3), 0.5)
+  directions = jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (3, 1))
+  _, rgb = model.field.apply({"params": variables["params"]["field"]}, points, directions,
+                             jnp.array([0, 1, -1]))
+  assert not np.allclose(rgb[0], rgb[1])
+  zero_table = {**variables["params"]["field"],
+                "appearance": {"embedding": jnp.zeros_like(table)}}
+  _, rgb_without = model.field.apply({"params": zero_table}, points, directions)
+  np.testing.assert_allclose(rgb[2], rgb_without[2], atol=1e-6)

@@ -1,0 +1,45 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax.nerf import occupancy
+
+
+def test_compact_keeps_order_pads_and_flags_overflowing_rays():
+  mask = jnp.array([[1, 0, 1, 0], [0, 0, 0, 0], [1, 1, 1, 0], [0, 1, 0, 0]], bool)
+  indices, valid, complete = occupancy.compact(mask, 4)
+  np.testing.assert_array_equal(indices, [0, 2, 8, 9])
+  np.testing.assert_array_equal(valid, [True] * 4)
+  # Ray 2 needs three samples but only two fit; ray 3 does not fit at all.
+  np.testing.assert_array_equal(complete, [True, True, False, False])
+  indices, valid, complete = occupancy.compact(mask, 8)
+  np.testing.assert_array_equal(indices, [0, 2, 8, 9, 10, 13, 16, 16])
+  np.testing.assert_array_equal(valid, [True] * 6 + [False] * 2)
+  assert np.all(complete)
+
+
+def test_unvisited_cells_are_occupied_until_evaluated():
+  grid = occupancy.initial_grid(4)
+  assert np.all(occupancy.occupied_cells(grid, 0.1, 0.01))
+
+  def density(points):  # dense only in the cube's lower-x half
+    return jnp.where(points[:, 0] < 0.5, 10.0, 0.0)
+
+  grid = occupancy.update(grid, density, jax.random.PRNGKey(0), jnp.int32(0), 32, 0.95)
+  assert np.sum(grid >= 0) == 32  # only the first 32 cells were visited
+  grid = occupancy.update(grid, density, jax.random.PRNGKey(1), jnp.int32(1), 32, 0.95)
+  occupied = np.asarray(occupancy.occupied_cells(grid, 0.1, 0.01))
+  np.testing.assert_array_equal(occupied[:2], True)
+  np.testing.assert_array_equal(occupied[2:], False)
+  points = jnp.array([[0.1, 0.5, 0.5], [0.9, 0.5, 0.5], [-5.0, 0.0, 0.0]])
+  np.testing.assert_array_equal(occupancy.lookup(jnp.asarray(occupied), points),
+                                [True, False, True])
+
+
+def test_update_decays_to_empty_when_density_vanishes():
+  grid = jnp.full((2, 2, 2), 100.0)
+  for index in range(20):
+    grid = occupancy.update(grid, lambda p: jnp.zeros(p.shape[0]), jax.random.PRNGKey(index),
+                            jnp.int32(index), 8, 0.5)
+  assert float(grid.max()) < 1e-3
+  assert not np.any(occupancy.occupied_cells(grid, 0.1, 0.01) & (grid > 0.11))
