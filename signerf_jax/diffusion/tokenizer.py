@@ -5,9 +5,10 @@ so the CLIP BPE tokenizer of Stable Diffusion checkpoints and simpler ones (e.g.
 vocabulary for small models) are interchangeable in `clip_text.encode_prompt`.
 
 `CLIPTokenizer` reproduces transformers' `CLIPTokenizer` from a checkpoint's `vocab.json` +
-`merges.txt`. transformers 5 only has the tokenizers-library backed class (what diffusers
-pipelines run); its cleaning differs from the old slow Python class without ftfy, which also
-dropped control characters and split CJK text into single characters. The steps:
+`merges.txt` (or the same vocabulary and merges in `tokenizer.json`). transformers 5 only has
+the tokenizers-library backed class (what diffusers pipelines run); its cleaning differs from
+the old slow Python class without ftfy, which also dropped control characters and split CJK
+text into single characters. The steps:
   1. special tokens (bos/eos/unk/pad) written literally in the text are split out first (with
      SD 2.x's pad token "!", every "!" of a prompt becomes id 0, as in the reference);
   2. each remaining piece is normalised: Unicode NFC, runs of whitespace -> one space, lower case
@@ -47,6 +48,7 @@ WHITESPACE_CONTROLS = frozenset("\t\n\v\f\r\x85")
 DEFAULT_SPECIAL_TOKENS = {"bos_token": "<|startoftext|>", "eos_token": "<|endoftext|>",
                           "unk_token": "<|endoftext|>", "pad_token": "<|endoftext|>"}
 DEFAULT_MAX_LENGTH = 77
+TOKENIZER_JSON = "tokenizer.json"  # The tokenizers library's single-file format.
 
 
 class Tokenizer(Protocol):
@@ -177,17 +179,26 @@ class CLIPTokenizer:
 
   @classmethod
   def from_directory(cls, directory: str | os.PathLike) -> "CLIPTokenizer":
-    """Reads `vocab.json`, `merges.txt` and the special tokens and length of a tokenizer folder.
+    """Reads the vocabulary, merges, special tokens and length of a tokenizer folder.
+
+    The vocabulary and merges come from `vocab.json` + `merges.txt`, or, when those are absent
+    (transformers 5 `save_pretrained` writes only this), from the BPE model in `tokenizer.json`.
 
     Special tokens come from `special_tokens_map.json`, else `tokenizer_config.json`, else the
     CLIP defaults; `model_max_length` from `tokenizer_config.json` (default 77).
     """
     directory = Path(directory)
-    vocabulary = files.read_json(directory / "vocab.json")
+    if (directory / "vocab.json").is_file() or not (directory / TOKENIZER_JSON).is_file():
+      vocabulary = files.read_json(directory / "vocab.json")
+      vocabulary_source = directory / "vocab.json"
+      merges = read_merges(directory / "merges.txt")
+    else:
+      vocabulary, merges = _read_tokenizer_json(directory / TOKENIZER_JSON)
+      vocabulary_source = directory / TOKENIZER_JSON
     if not isinstance(vocabulary, dict) or not all(
         isinstance(token_id, int) for token_id in vocabulary.values()):
-      raise InputError("expected a JSON object of token -> integer id", directory / "vocab.json")
-    merges = read_merges(directory / "merges.txt")
+      raise InputError("expected a JSON object of token -> integer id", vocabulary_source,
+                       "vocab")
     config_path = directory / "tokenizer_config.json"
     config = files.read_json(config_path) if config_path.is_file() else {}
     special_path = directory / "special_tokens_map.json"
@@ -286,14 +297,33 @@ def read_merges(path: str | os.PathLike) -> list[tuple[str, str]]:
   return merges
 
 
+def _read_tokenizer_json(path: Path) -> tuple[dict, list[tuple[str, str]]]:
+  """(vocabulary, merges) of the BPE model in a tokenizers-library `tokenizer.json`.
+
+  Merges are stored as "left right" strings (tokenizers < 0.20) or [left, right] pairs.
+  """
+  contents = files.read_json(path)
+  model = contents.get("model") if isinstance(contents, dict) else None
+  if not isinstance(model, dict) or model.get("type") != "BPE":
+    raise InputError("expected a BPE model (CLIP's tokenizer)", path, "model.type")
+  merges = []
+  for merge in model.get("merges", ()):
+    pair = merge.split(" ") if isinstance(merge, str) else merge
+    if not isinstance(pair, list) or len(pair) != 2:
+      raise InputError(f"expected a pair of symbols, got {merge!r}", path, "model.merges")
+    merges.append((pair[0], pair[1]))
+  return model.get("vocab"), merges
+
+
 def load_tokenizer(directory: str | os.PathLike) -> Tokenizer:
   """The tokenizer stored in a checkpoint's `tokenizer/` or `tokenizer_2/` folder."""
   directory = Path(directory)
   if not directory.is_dir():
     raise InputError("tokenizer directory not found", directory)
-  if (directory / "vocab.json").is_file() and (directory / "merges.txt").is_file():
+  if (((directory / "vocab.json").is_file() and (directory / "merges.txt").is_file())
+      or (directory / TOKENIZER_JSON).is_file()):
     return CLIPTokenizer.from_directory(directory)
   if word_tokenizer.is_word_tokenizer_directory(directory):
     return word_tokenizer.WordTokenizer.from_directory(directory)
-  raise InputError("no tokenizer found: expected vocab.json and merges.txt (CLIP BPE) or a "
-                   "word-level tokenizer_config.json", directory)
+  raise InputError("no tokenizer found: expected vocab.json and merges.txt or tokenizer.json "
+                   "(CLIP BPE), or a word-level tokenizer_config.json", directory)

@@ -66,6 +66,12 @@ def save_model(model, directory):
 
 
 @pytest.fixture(scope="session")
+def perturb_parameters():
+  """perturb(model, seed), for tests that build their own reference models."""
+  return perturb
+
+
+@pytest.fixture(scope="session")
 def diffusers():
   pytest.importorskip("torch")
   return pytest.importorskip("diffusers")

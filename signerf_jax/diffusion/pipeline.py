@@ -1,0 +1,372 @@
+"""A diffusers ControlNet inpainting pipeline: loading it, encoding prompts, generating.
+
+Equivalent to diffusers' `StableDiffusionControlNetInpaintPipeline` (SD 1.x / 2.x) and
+`StableDiffusionXLControlNetInpaintPipeline` (SDXL, chosen when the UNet has `text_time`
+conditioning), with inputs as NHWC arrays in [0, 1] at the generation resolution:
+
+    pipeline = load_pipeline("checkpoints/sd15-inpainting",
+                             controlnet="checkpoints/controlnet-depth",
+                             scheduler_kind="dpm_solver_multistep")
+    prompt = encode_prompts(pipeline, ["a red armchair"])
+    images = generate(pipeline, prompt, image, mask, control, key=jax.random.key(0),
+                      options=GenerationOptions(num_inference_steps=20, strength=0.9))
+
+To batch differently (e.g. `jax.vmap` over groups of views, or `shard_map` over devices), call
+`sampler.sample` with the pieces `sampler_setup` returns, as `generate` does.
+
+`generate` equals the diffusers pipeline called with `output_type="np"`, numpy inputs of the
+output size (no resizing), `num_images_per_prompt=1`, `eta=0`, no `padding_mask_crop`,
+`clip_skip`, `guidance_rescale`, `denoising_start/end`, IP-adapters or multi-ControlNets, and
+the same random draws (see `sampler.SamplerNoise` for the reference's order). The paste-back
+(`GenerationOptions.paste_back`) is diffusers' `apply_overlay` without the crop (see
+`sampler.paste_back`); diffusers applies it only together with `padding_mask_crop`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import gin
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax import files
+from signerf_jax.diffusion import clip_text, sampler, schedulers
+from signerf_jax.diffusion.attention import AttentionOptions
+from signerf_jax.diffusion.controlnet import load_controlnet
+from signerf_jax.diffusion.layers import Dtype
+from signerf_jax.diffusion.tokenizer import Tokenizer, load_tokenizer
+from signerf_jax.diffusion.unet import load_unet
+from signerf_jax.diffusion.vae import load_vae
+from signerf_jax.errors import InputError
+
+MODEL_INDEX = "model_index.json"
+COMPONENTS = ("unet", "controlnet", "vae", "text_encoder", "text_encoder_2", "tokenizer",
+              "tokenizer_2", "scheduler")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Pipeline:
+  """A loaded inpainting pipeline.
+
+  Attributes:
+    models: the UNet, VAE and optional ControlNet with their parameters.
+    tokenizers, text_encoders: SD: (tokenizer,), (text_encoder,); SDXL: both pairs, or only
+      the second for checkpoints without the first encoder.
+    scheduler: the noise schedule configuration.
+    force_zeros_for_empty_prompt: SDXL's unconditional embedding without negative prompt is
+      zeros (model_index.json; True unless the checkpoint says otherwise).
+  """
+  models: sampler.DiffusionModels
+  tokenizers: tuple[Tokenizer, ...]
+  text_encoders: tuple[clip_text.TextEncoder, ...]
+  scheduler: schedulers.SchedulerConfig
+  force_zeros_for_empty_prompt: bool = True
+
+  @property
+  def is_sdxl(self) -> bool:
+    return self.models.unet.config.addition_embed_type == "text_time"
+
+
+def _read_model_index(path: Path) -> tuple[dict[str, Path], dict[str, Any]]:
+  """(subdirectories of the components `model_index.json` names, the pipeline's options).
+
+  Entries are `name: [library, class]`, with [null, null] for an absent component (e.g. a
+  safety checker saved as None); other entries are options (force_zeros_for_empty_prompt, ...).
+  """
+  index_path = path / MODEL_INDEX
+  index = files.read_json(index_path)
+  if not isinstance(index, dict):
+    raise InputError("expected a JSON object", index_path)
+  components, options = {}, {}
+  for name, value in index.items():
+    if name.startswith("_"):
+      continue
+    if not isinstance(value, list):
+      options[name] = value
+    elif len(value) != 2:
+      raise InputError(f"expected [library, class], got {value!r}", index_path, name)
+    elif value[1] is not None:
+      components[name] = path / name
+  return components, options
+
+
+def _component_directories(path: Path | None, overrides: Mapping[str, Any]
+                           ) -> tuple[dict[str, Path], dict[str, Any], str]:
+  """Where each component is: an explicit path, else the pipeline directory's subfolder.
+
+  Returns:
+    (directories of the components found, model_index.json options, where the others were
+    looked for, for error messages).
+  """
+  pipeline_components, options = {}, {}
+  if path is None:
+    searched = "no pipeline directory was given"
+  elif not path.is_dir():
+    raise InputError("pipeline directory not found", path)
+  elif (path / MODEL_INDEX).is_file():
+    pipeline_components, options = _read_model_index(path)
+    searched = f"{MODEL_INDEX} does not list it"
+  else:  # No index: a folder of component subdirectories.
+    pipeline_components = {name: path / name for name in COMPONENTS if (path / name).is_dir()}
+    searched = f"no such subdirectory (and no {MODEL_INDEX})"
+  directories = {}
+  for name in COMPONENTS:
+    directory = (Path(overrides[name]) if overrides.get(name) is not None
+                 else pipeline_components.get(name))
+    if directory is not None:
+      if not directory.is_dir():
+        raise InputError(f"component {name!r} not found", directory, name)
+      directories[name] = directory
+  return directories, options, searched
+
+
+def load_pipeline(path: str | os.PathLike | None = None, *,
+                  unet: str | os.PathLike | None = None,
+                  controlnet: str | os.PathLike | None = None,
+                  vae: str | os.PathLike | None = None,
+                  text_encoder: str | os.PathLike | None = None,
+                  text_encoder_2: str | os.PathLike | None = None,
+                  tokenizer: str | os.PathLike | None = None,
+                  tokenizer_2: str | os.PathLike | None = None,
+                  scheduler: str | os.PathLike | None = None,
+                  scheduler_kind: str | None = None,
+                  scheduler_options: Mapping[str, Any] | None = None,
+                  dtype=np.float32, compute_dtype: Dtype = jnp.float32,
+                  variant: str | None = None,
+                  attention: AttentionOptions | None = None) -> Pipeline:
+  """Loads a diffusers pipeline directory and/or separately stored components.
+
+  Args:
+    path: a pipeline directory (`model_index.json` naming its component subfolders); None when
+      every needed component is given explicitly.
+    unet, controlnet, vae, text_encoder, text_encoder_2, tokenizer, tokenizer_2, scheduler:
+      component directories replacing (or adding to) the pipeline's, e.g. a ControlNet stored
+      apart from its base model. Needed: unet, vae, scheduler, and text_encoder + tokenizer
+      (SD) or text_encoder_2 + tokenizer_2 (SDXL); the ControlNet is optional.
+    scheduler_kind: "ddim", "dpm_solver_multistep" or "euler_ancestral", reusing the
+      checkpoint's schedule (needed when its scheduler class is not one of these, e.g. PNDM).
+    scheduler_options: scheduler fields to override (e.g. {"use_karras_sigmas": True}).
+    dtype: storage dtype of the UNet, ControlNet and VAE parameters (float32 or bfloat16).
+      bfloat16 storage saves memory in the sampler only with a bfloat16 `compute_dtype`: with
+      float32 compute, XLA hoists the weights' conversion out of the denoising loop and holds
+      float32 copies of them.
+    compute_dtype: float32, or bfloat16 matmuls/convolutions with float32 accumulation.
+    variant: diffusers weight variant ("fp16" reads *.fp16.safetensors).
+    attention: attention evaluation options.
+
+  Raises:
+    InputError naming a missing component and where it was looked for, or the file and field
+    of anything malformed.
+  """
+  path = None if path is None else Path(path)
+  overrides = dict(unet=unet, controlnet=controlnet, vae=vae, text_encoder=text_encoder,
+                   text_encoder_2=text_encoder_2, tokenizer=tokenizer, tokenizer_2=tokenizer_2,
+                   scheduler=scheduler)
+  directories, options, searched = _component_directories(path, overrides)
+
+  def require(name: str) -> Path:
+    if name not in directories:
+      raise InputError(f"missing pipeline component {name!r}: {searched}; pass "
+                       f"{name}=<directory>", path, name)
+    return directories[name]
+
+  if options.get("requires_aesthetics_score"):
+    raise InputError("aesthetic-score conditioning (SDXL refiner) is not implemented",
+                     path / MODEL_INDEX, "requires_aesthetics_score")
+  network_options = dict(variant=variant, attention=attention, compute_dtype=compute_dtype)
+  unet_module, unet_params = load_unet(require("unet"), dtype, **network_options)
+  vae_module, vae_params = load_vae(require("vae"), dtype, **network_options)
+  controlnet_module, controlnet_params = None, None
+  if "controlnet" in directories:
+    controlnet_module, controlnet_params = load_controlnet(directories["controlnet"], dtype,
+                                                           **network_options)
+  models = sampler.DiffusionModels(unet_params, vae_params, controlnet_params, unet_module,
+                                   vae_module, controlnet_module)
+
+  if unet_module.config.addition_embed_type == "text_time":  # SDXL
+    encoder_names = [("tokenizer_2", "text_encoder_2")]
+    if "text_encoder" in directories or "tokenizer" in directories:
+      encoder_names.insert(0, ("tokenizer", "text_encoder"))
+  else:
+    encoder_names = [("tokenizer", "text_encoder")]
+  tokenizers = tuple(load_tokenizer(require(name)) for name, _ in encoder_names)
+  text_encoders = tuple(clip_text.load_text_encoder(require(name)) for _, name in encoder_names)
+  scheduler_config = schedulers.load_scheduler_config(require("scheduler"), scheduler_kind,
+                                                      **(scheduler_options or {}))
+  return Pipeline(models, tokenizers, text_encoders, scheduler_config,
+                  bool(options.get("force_zeros_for_empty_prompt", True)))
+
+
+def encode_prompts(pipeline: Pipeline, prompts: str | Sequence[str],
+                   negative_prompts: str | Sequence[str] | None = None, *,
+                   prompts_2: str | Sequence[str] | None = None,
+                   negative_prompts_2: str | Sequence[str] | None = None,
+                   guidance: bool = True) -> clip_text.PromptEmbeddings:
+  """The pipeline's text conditioning, as its diffusers pipeline's `encode_prompt`.
+
+  Args:
+    prompts: one prompt per sample, or one for all (the sampler broadcasts a single row).
+    negative_prompts: the unconditional prompts (None: "" for SD, zeros for SDXL with
+      force_zeros_for_empty_prompt).
+    prompts_2, negative_prompts_2: SDXL's prompts for the second encoder (default: the same).
+    guidance: also encode the unconditional branch (needed when guidance_scale > 1).
+  """
+  if pipeline.is_sdxl:
+    return clip_text.encode_prompt_sdxl(
+        pipeline.tokenizers, pipeline.text_encoders, prompts, prompts_2, negative_prompts,
+        negative_prompts_2, guidance, pipeline.force_zeros_for_empty_prompt)
+  if prompts_2 is not None or negative_prompts_2 is not None:
+    raise InputError("prompts_2 is SDXL's second prompt; this pipeline has one text encoder",
+                     field="prompts_2")
+  return clip_text.encode_prompt(pipeline.tokenizers[0], pipeline.text_encoders[0], prompts,
+                                 negative_prompts, guidance)
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class GenerationOptions:
+  """The knobs of a generation (diffusers' argument names and meanings).
+
+  Attributes:
+    num_inference_steps: steps of the full schedule; int(steps * strength) of them run.
+    strength: 1 starts from noise; below 1 from the image noised to that level (the paper's
+      "denoising strength", 0.5 - 0.95).
+    guidance_scale: classifier-free guidance weight; <= 1 disables guidance (half the work).
+    controlnet_conditioning_scale: multiplies the ControlNet residuals (paper: 0.4 - 1.0).
+    control_guidance_start, control_guidance_end: the fraction of the steps run in which the
+      ControlNet acts.
+    guess_mode: ControlNet guess mode.
+    paste_back: composite the output over the input image through the mask.
+    mask_blur: Gaussian blur radius (pixels, PIL's `GaussianBlur`) of the paste-back mask.
+    original_size, crops_coords_top_left, target_size: SDXL's size conditioning in pixels
+      (height, width) / (top, left); None sizes default to the image size.
+  """
+  num_inference_steps: int = 20
+  strength: float = 1.0
+  guidance_scale: float = 7.5
+  controlnet_conditioning_scale: float = 1.0
+  control_guidance_start: float = 0.0
+  control_guidance_end: float = 1.0
+  guess_mode: bool = False
+  paste_back: bool = False
+  mask_blur: float = 0.0
+  original_size: tuple[int, int] | None = None
+  crops_coords_top_left: tuple[int, int] = (0, 0)
+  target_size: tuple[int, int] | None = None
+
+
+def sdxl_time_ids(height: int, width: int, options: GenerationOptions) -> np.ndarray:
+  """[1, 6] float32 add_time_ids: original size, crop top-left, target size (pixels)."""
+  original = options.original_size or (height, width)
+  target = options.target_size or (height, width)
+  return np.asarray([[*original, *options.crops_coords_top_left, *target]], np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplerSetup:
+  """Everything `sampler.sample` takes besides the models, prompt, inputs and noise.
+
+  Attributes:
+    schedule: the steps run (`schedulers.make_schedule` with the options' strength).
+    time_ids: SDXL's [1, 6] size conditioning; None for SD.
+    guidance: the traced guidance scale and per-step ControlNet scales.
+    settings: the static choices.
+  """
+  schedule: schedulers.Schedule
+  time_ids: jax.Array | None
+  guidance: sampler.Guidance
+  settings: sampler.SamplerSettings
+
+
+def sampler_setup(pipeline: Pipeline, height: int, width: int,
+                  options: GenerationOptions = GenerationOptions()) -> SamplerSetup:
+  """The sampler's schedule, conditioning and settings for images of height x width pixels.
+
+  `generate` calls `sampler.sample` with these; call it directly to vmap or shard it.
+  """
+  models = pipeline.models
+  schedule = schedulers.make_schedule(pipeline.scheduler, options.num_inference_steps,
+                                      options.strength)
+  guess_mode = options.guess_mode
+  if models.controlnet is not None and not pipeline.is_sdxl:
+    # The SD pipeline (not the SDXL one) forces guess mode for pooled-condition ControlNets.
+    guess_mode = guess_mode or models.controlnet.config.global_pool_conditions
+  settings = sampler.SamplerSettings(
+      classifier_free_guidance=options.guidance_scale > 1.0, guess_mode=guess_mode,
+      start_from_image=options.strength < 1.0, paste_back=options.paste_back,
+      mask_blur=float(options.mask_blur) if options.paste_back else 0.0)
+  guidance = sampler.Guidance(
+      guidance_scale=jnp.float32(options.guidance_scale),
+      controlnet_scales=jnp.asarray(sampler.controlnet_scales(
+          schedule.num_steps, options.controlnet_conditioning_scale,
+          options.control_guidance_start, options.control_guidance_end)))
+  time_ids = jnp.asarray(sdxl_time_ids(height, width, options)) if pipeline.is_sdxl else None
+  return SamplerSetup(schedule, time_ids, guidance, settings)
+
+
+def _batch_of_keys(key: jax.Array, batch: int) -> jax.Array:
+  """[B] typed keys: one key is split into B, a batch of B keys is taken as is."""
+  if not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+    key = jax.random.wrap_key_data(key)  # Raw uint32 key data (jax.random.PRNGKey).
+  keys = jax.random.split(key, batch) if key.ndim == 0 else key
+  if keys.shape != (batch,):
+    raise InputError(f"expected one key or {batch} keys, got keys of shape {keys.shape}",
+                     field="key")
+  return keys
+
+
+def _as_images(array, name: str, channels: int | None = None) -> jax.Array:
+  """`array` as float32 [B, H, W, channels] (any channel count for None)."""
+  array = jnp.asarray(array, jnp.float32)
+  if array.ndim != 4 or channels not in (None, array.shape[-1]):
+    raise InputError(f"expected [B, H, W, {channels or 'C'}] in [0, 1], got shape "
+                     f"{array.shape}", field=name)
+  return array
+
+
+def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask,
+             control=None, *, key: jax.Array | None = None,
+             noise: sampler.SamplerNoise | None = None,
+             options: GenerationOptions = GenerationOptions()) -> jax.Array:
+  """Inpaints B images in one compiled run.
+
+  Args:
+    pipeline: from `load_pipeline`.
+    prompt: from `encode_prompts` (1 or B rows; with negatives when guidance_scale > 1).
+    image: [B, H, W, 3] in [0, 1]; H and W multiples of the VAE's latent factor (8).
+    mask: [B, H, W, 1] in [0, 1]; >= 0.5 is regenerated.
+    control: [B, H, W, C] in [0, 1] for the ControlNet (C its conditioning channels, or 1);
+      None for a pipeline without ControlNet.
+    key: a PRNG key (split into one per sample) or [B] keys (sample b uses keys[b]).
+    noise: instead of `key`, every random draw as arrays (see `sampler.SamplerNoise`).
+    options: the generation knobs.
+
+  Returns:
+    [B, H, W, 3] float32 images in [0, 1].
+  """
+  image = _as_images(image, "image", 3)
+  mask = _as_images(mask, "mask", 1)
+  if control is not None:
+    control = _as_images(control, "control")  # The sampler checks the channels.
+  batch, height, width = image.shape[:3]
+  for name, array in (("mask", mask), ("control", control)):
+    if array is not None and tuple(array.shape[:3]) != (batch, height, width):
+      raise InputError(f"expected batch and size {(batch, height, width)} like the image, got "
+                       f"{tuple(array.shape[:3])}", field=name)
+  setup = sampler_setup(pipeline, height, width, options)
+  if noise is None:
+    if key is None:
+      raise InputError("pass a PRNG key (or the noise arrays)", field="key")
+    factor = pipeline.models.latent_factor
+    noise = sampler.draw_noise(
+        _batch_of_keys(key, batch),
+        (height // factor, width // factor, pipeline.models.latent_channels),
+        setup.schedule.num_steps)
+  return sampler.sample(pipeline.models, setup.schedule, prompt, setup.time_ids,
+                        sampler.InpaintingInputs(image, mask, control), noise, setup.guidance,
+                        setup.settings)
