@@ -57,7 +57,7 @@ def train_and_measure(train_set, eval_set, model: NerfModel, seconds: Sequence[f
   """Trains in bursts up to each time in `seconds`, evaluating on `eval_set` after each."""
   config = train.TrainConfig()
   trainer = train.make_trainer(train_set, model=model, config=config)
-  curve, samples = [], 0.0
+  curve = []
   for limit in seconds:
     statistics = trainer.run(until_step=config.steps * 100, until_seconds=limit, progress=False)
     started = time.perf_counter()

@@ -21,7 +21,18 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("signerf_jax.nerf.commands.render",
                "render a trained NeRF's views (PNG, depth EXR) and a camera-path video"),
     "eval": ("signerf_jax.nerf.commands.evaluate",
-             "evaluate a trained NeRF (PSNR, SSIM, depth error) as one JSON line"),
+             "evaluate a trained NeRF (PSNR, SSIM, depth error) or an edit (--edit) as one "
+             "JSON line"),
+    "edit": ("signerf_jax.editing.commands.edit",
+             "edit a NeRF scene with a prompt (SIGNeRF): every stage, resumable"),
+    "preview": ("signerf_jax.editing.commands.preview",
+                "preview candidate reference sheets (seeds side by side, per-tile re-rolls)"),
+    "update": ("signerf_jax.editing.commands.update",
+               "update the image set through the chosen sheet; write the edited dataset"),
+    "finetune": ("signerf_jax.editing.commands.finetune",
+                 "fine-tune (or retrain) the NeRF on the edited dataset"),
+    "demo": ("signerf_jax.editing.demo",
+             "insert a cow into a generated scene with the shipped model, end to end"),
 }
 
 

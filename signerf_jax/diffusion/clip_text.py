@@ -268,6 +268,19 @@ def params_from_tensors(config: CLIPTextConfig, tensors: Mapping[str, np.ndarray
   return traverse_util.unflatten_dict(flat)
 
 
+def tensors_from_params(config: CLIPTextConfig, params: Any, prefix: str = ""
+                        ) -> dict[str, np.ndarray]:
+  """The inverse of `params_from_tensors`: transformers-named tensors in torch layouts (no
+  `text_model.` prefix by default, as transformers >= 5 saves CLIPTextModel)."""
+  flat = traverse_util.flatten_dict(params)
+  tensors = {}
+  for name in expected_shapes(config, prefix):
+    path, transpose = _flax_path(name.removeprefix(prefix))
+    value = np.asarray(flat[path])
+    tensors[name] = np.ascontiguousarray(value.T if transpose else value)
+  return tensors
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class TextEncoder:
   """A loaded text encoder: call it on [B, L] ids to get a CLIPTextOutput."""

@@ -14,13 +14,19 @@ EVAL_FILE = "eval.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--run", required=True, help="run directory written by `signerf train`")
+  target = parser.add_mutually_exclusive_group(required=True)
+  target.add_argument("--run", help="run directory written by `signerf train`")
+  target.add_argument("--edit", help="edit directory written by `signerf edit`: evaluate the "
+                      "edit instead (background preservation, consistency, CLIP)")
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
                       help="which dataset views to evaluate on")
   parser.add_argument("--chunk_size", type=int, default=4096, help="rays rendered at once")
 
 
 def run(args: argparse.Namespace) -> int:
+  if args.edit is not None:
+    from signerf_jax.editing import commands  # pylint: disable=g-import-not-at-top
+    return commands.run_evaluation(args.edit)
   trained = evaluate.load_run(args.run)
   dataset = load_recorded_dataset(trained.description, args.split)
   metrics, _ = evaluate.evaluate(trained.model, trained.variables, dataset, args.chunk_size)

@@ -1,0 +1,173 @@
+"""The default model's quality gates (issue 5) on the held-out procedural data.
+
+    python experiments/eval_default_model.py [--model DIR] [--data DIR] [--output JSON] \
+        [--gin_file eval_default_model] [--gin_param 'default_model_evaluation.num_singles = 16']
+
+Measures prompt adherence, shape adherence over ControlNet scales, colour consistency of sheets,
+independent views and slot updates, and seconds per generation call
+(`signerf_jax.default_model.evaluation`, whose docstring defines each measure), on the "eval"
+split of the dataset. Writes
+  * --output (default experiments/results/default_model.json): the measures, pass/fail of each
+    gate with its threshold, timings and the machine (CPU count, load average), and the full gin
+    config beside it (.gin);
+  * <output stem>_samples.png: single views (input, mask, control, generation per ControlNet
+    scale, the object found at scale 1, the truth) and sheets (input, mask, control, generated
+    sheet, slot update, the same views generated independently).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+from pathlib import Path
+
+import gin
+import jax
+import numpy as np
+
+from signerf_jax import configs, files
+from signerf_jax.default_model import evaluation, training_data
+from signerf_jax.diffusion import pipeline as pipeline_lib
+from signerf_jax.editing import figures, generation
+from signerf_jax.editing import sheet as sheet_lib
+from signerf_jax.editing.config import DEFAULT_MODEL_DIR
+
+REPOSITORY = Path(__file__).resolve().parent.parent
+RESULTS = REPOSITORY / "experiments" / "results"
+DEFAULT_DATA = REPOSITORY / "outputs" / "default_model_data"
+
+
+def machine(load_at_start) -> dict:
+  """CPUs, devices and the 1, 5 and 15 minute load averages at the start and now."""
+  return {"cpu_count": os.cpu_count(), "usable_cpus": len(os.sched_getaffinity(0)),
+          "load_average_at_start": list(load_at_start), "load_average_at_end": list(
+              os.getloadavg()), "devices": [str(device) for device in jax.devices()],
+          "jax": jax.__version__}
+
+
+def stack_vertically(images) -> np.ndarray:
+  """[H_i, W_i, 3] images one below the other, padded on the right with white."""
+  width = max(image.shape[1] for image in images)
+  return np.concatenate([np.pad(image, ((0, 0), (0, width - image.shape[1]), (0, 0)),
+                                constant_values=1.0) for image in images])
+
+
+def samples_figure(singles: evaluation.ViewInputs, single_images: dict,
+                   sheets: evaluation.ViewInputs, sheet_images: dict,
+                   layout: sheet_lib.SheetLayout, settings: evaluation.EvaluationSettings
+                   ) -> np.ndarray:
+  """The figure of the module docstring, [H, W, 3] in [0, 1]."""
+  full = list(settings.controlnet_scales).index(evaluation.FULL_SCALE)
+  seen = lambda image, mask: image * (1 - mask[..., None]) + sheet_lib.EMPTY_SLOT_COLOR * mask[
+      ..., None]
+  rows, labels = [], []
+  for index in range(min(settings.figure_singles, len(singles.captions))):
+    mask = singles.masks[index, 0]
+    rows.append([seen(singles.background[index, 0], mask), mask, singles.controls[index, 0],
+                 *single_images["generated"][:, index],
+                 single_images["objects"][full, index].astype(np.float32),
+                 singles.truth[index, 0]])
+    labels.append([singles.captions[index], "mask", "control",
+                   *(f"scale {scale:g}" for scale in settings.controlnet_scales),
+                   f"object at {evaluation.FULL_SCALE:g}", "truth"])
+  grids = [figures.image_grid(rows, labels)]
+  rows, labels = [], []
+  empty_slot = np.full((layout.tile_height, layout.tile_width, 3), sheet_lib.EMPTY_SLOT_COLOR,
+                       np.float32)
+  for index in range(min(settings.figure_sheets, len(sheets.captions))):
+    inputs = sheet_images["sheet_inputs"][index]
+    rows.append([seen(inputs.rgb, inputs.mask[..., 0]), inputs.mask, inputs.control,
+                 sheet_images["sheets"][index], sheet_images["slot_updates"][index],
+                 np.asarray(sheet_lib.assemble(sheet_images["independent"][index], empty_slot,
+                                               layout))])
+    labels.append([sheets.captions[index], "mask", "control", "reference sheet", "slot update",
+                   "independent views"])
+  if rows:
+    grids.append(figures.image_grid(rows, labels))
+  return stack_vertically(grids)
+
+
+def print_summary(result: dict) -> None:
+  prompt, shape = result["prompt_adherence"], result["shape_adherence"]
+  consistency, timing, gates = result["consistency"], result["timing"], result["gates"]
+  verdict = lambda name: "PASS" if gates[name]["passed"] else "FAIL"
+  ious = ", ".join(f"{scale:g}: {iou:.3f}"
+                   for scale, iou in zip(shape["controlnet_scales"], shape["mean_iou"]))
+  print(f"prompt adherence  {verdict('prompt_adherence')}  {prompt['share']:.3f} of "
+        f"{prompt['samples']} objects in the named colour (>= "
+        f"{gates['prompt_adherence']['threshold']})")
+  print(f"shape adherence   {verdict('shape_adherence')}  mean IoU by ControlNet scale {ious} "
+        f"(ceiling {shape['segmentation_ceiling_iou']:.3f}; >= "
+        f"{gates['shape_adherence']['threshold']} at 1, rising)")
+  agreement = consistency["agreement"]
+  print(f"consistency       {verdict('consistency')}  colour agreement over "
+        f"{consistency['sheets']} sheets: sheet {agreement['sheet']:.3f}, slot update "
+        f"{agreement['slot_update']:.3f}, independent {agreement['independent']:.3f} (margin >= "
+        f"{gates['consistency']['threshold']})")
+  seconds = lambda task, field: timing.get(task, {}).get(field)
+  show = lambda value: "n/a" if value is None else f"{value:.2f} s"
+  print(f"timing            sheet {show(seconds('sheet', 'seconds_per_sample'))}, slot update "
+        f"{show(seconds('slot_update', 'seconds_per_sample'))}, single view "
+        f"{show(seconds('single_view', 'seconds_per_sample'))} per sample; compile sheet "
+        f"{show(seconds('sheet', 'compile_seconds'))}, single view "
+        f"{show(seconds('single_view', 'compile_seconds'))}")
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--model", default=str(DEFAULT_MODEL_DIR),
+                      help="a diffusers ControlNet inpainting pipeline (default: the shipped model)")
+  parser.add_argument("--data", default=str(DEFAULT_DATA),
+                      help="the generated dataset (experiments/make_default_model_data.py)")
+  parser.add_argument("--output", default=str(RESULTS / "default_model.json"))
+  parser.add_argument("--gin_file", action="append", default=[])
+  parser.add_argument("--gin_param", action="append", default=[])
+  args = parser.parse_args(argv)
+  start = time.monotonic()
+  load_at_start = os.getloadavg()
+  configs.parse_gin(args.gin_file or ["eval_default_model"], args.gin_param)
+  settings, thresholds = evaluation.EvaluationSettings(), evaluation.QualityGates()
+  options = pipeline_lib.GenerationOptions()
+
+  data = training_data.load_split(args.data, "eval", keep=None, progress=False)
+  single_indices, sheet_indices = evaluation.select_samples(data.singles, data.sheets, settings)
+  singles = evaluation.ViewInputs.from_arrays(data.singles, single_indices)
+  sheets = evaluation.ViewInputs.from_arrays(data.sheets, sheet_indices)
+  single_generator = generation.load_generator(args.model, "", "", "", "", options,
+                                               settings.singles_per_device)
+  sheet_generator = dataclasses.replace(single_generator,
+                                        views_per_device=settings.sheets_per_device)
+  load_seconds = time.monotonic() - start
+
+  timer = evaluation.CallTimer()
+  single_measures, single_images = evaluation.evaluate_singles(single_generator, singles,
+                                                               settings, timer)
+  consistency, sheet_images = evaluation.evaluate_consistency(
+      sheet_generator, single_generator, sheets, data.layout, settings, timer)
+  shape = single_measures["shape_adherence"]
+  gates = evaluation.quality_gates(single_measures["prompt_adherence"]["share"],
+                                   shape["mean_iou"], shape["controlnet_scales"],
+                                   consistency["agreement"], thresholds)
+  result = {
+      "model": str(args.model), "data": str(args.data), "split": "eval", "gates": gates,
+      **single_measures, "consistency": consistency,
+      "timing": {**timer.summary(), "loading_seconds": load_seconds,
+                 "total_wall_seconds": time.monotonic() - start},
+      "machine": machine(load_at_start),
+      "settings": dataclasses.asdict(settings), "generation_options": dataclasses.asdict(options)}
+  output = Path(args.output)
+  files.write_json(output, result)
+  files.write_text(output.with_suffix(".gin"), gin.config_str())
+  figure_path = output.with_name(f"{output.stem}_samples.png")
+  files.write_image(figure_path, samples_figure(singles, single_images, sheets, sheet_images,
+                                                data.layout, settings))
+  print_summary(result)
+  print(f"results in {output}, samples in {figure_path}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

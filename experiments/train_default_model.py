@@ -1,0 +1,155 @@
+"""Trains the default model (resumably, within a CPU budget), exports and verifies its weights.
+
+    python experiments/train_default_model.py --data outputs/default_model_data \
+        --run outputs/default_model_run --max_minutes 60 \
+        [--gin_file default_model] [--gin_param 'unet_stage.num_steps = 100' ...]
+
+Each call resumes the stages in RUN (`signerf_jax.default_model.stages`: VAE, then UNet + text
+encoder, then ControlNet; finished stages are skipped) and starts no new step after
+--max_minutes, so the whole training spans as many calls as it needs. Then, unless --no_export:
+  * exports the weights reached so far (the finished model once all stages are done) in diffusers
+    layout to --weights (default: the package's shipped `signerf_jax/default_model/weights`);
+  * verifies the export by loading it back through the component loaders and checking that
+    every parameter equals the trained one rounded to the stored dtype;
+  * writes experiments/results/default_model_training.json (+ .gin): per stage the steps done,
+    wall time, final losses (mean of the last 50 steps), parameter counts, sizes on disk, and
+    the loss curves (means over windows of CURVE_WINDOW steps), and
+    experiments/results/default_model_training.png (the curves).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import gin
+import numpy as np
+from flax import traverse_util
+
+from signerf_jax import configs, files
+from signerf_jax.default_model import export, model, stages, training, training_data
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SHIPPED_WEIGHTS = Path(model.__file__).resolve().parent / "weights"
+CURVE_WINDOW = 10
+FINAL_WINDOW = 50
+PLOTTED = {"vae": ("l1", "gradient_l1"), "unet": ("loss_sheets", "loss_singles"),
+           "controlnet": ("loss_sheets", "loss_singles")}
+
+
+def window_means(values: np.ndarray, window: int) -> list[float]:
+  count = len(values) // window
+  return values[:count * window].reshape(count, window).mean(1).tolist()
+
+
+def verify_export(directory: Path, params: dict, dtype) -> dict[str, float]:
+  """Max |loaded - trained (rounded to dtype)| per component; all must be 0."""
+  loaded = export.load_checkpoint(directory)
+  pairs = {"vae": loaded.vae_params, "unet": loaded.unet_params,
+           "controlnet": loaded.controlnet_params, "text_encoder": loaded.text_encoder.params}
+  differences = {}
+  for name, loaded_params in pairs.items():
+    trained = traverse_util.flatten_dict(params[name])
+    restored = traverse_util.flatten_dict(loaded_params)
+    if set(trained) != set(restored):
+      raise RuntimeError(f"{name}: parameter names differ after export")
+    differences[name] = max(float(np.max(np.abs(
+        np.asarray(restored[path], np.float32)
+        - np.asarray(trained[path]).astype(dtype).astype(np.float32)))) for path in trained)
+  return differences
+
+
+def plot_curves(histories: dict, path: Path, panel_width: int = 420, height: int = 320) -> None:
+  """One panel per stage: log10 of windowed losses against steps (drawn with OpenCV)."""
+  panels = []
+  colours = [(180, 119, 31), (14, 127, 255), (44, 160, 44)]
+  font = cv2.FONT_HERSHEY_SIMPLEX
+  for stage in stages.STAGES:
+    canvas = np.full((height, panel_width, 3), 255, np.uint8)
+    cv2.putText(canvas, stage, (10, 18), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    history = histories.get(stage, {})
+    curves = [(name, np.asarray(window_means(history[name], CURVE_WINDOW)))
+              for name in ("loss",) + PLOTTED[stage] if name in history]
+    curves = [(name, values) for name, values in curves if len(values) > 1]
+    if curves:
+      logs = [np.log10(np.maximum(values, 1e-8)) for _, values in curves]
+      low, high = min(v.min() for v in logs), max(v.max() for v in logs) + 1e-6
+      left, right, top, bottom = 50, panel_width - 10, 30, height - 30
+      steps = len(history["loss"])
+      for tick in np.arange(np.floor(low), np.ceil(high) + 1):
+        y = int(bottom - (bottom - top) * (tick - low) / (high - low))
+        if top <= y <= bottom:
+          cv2.line(canvas, (left, y), (right, y), (220, 220, 220), 1)
+          cv2.putText(canvas, f"1e{tick:.0f}", (5, y + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+      cv2.putText(canvas, f"{steps} steps", (right - 90, height - 8), font, 0.45, (0, 0, 0), 1,
+                  cv2.LINE_AA)
+      for index, ((name, _), values) in enumerate(zip(curves, logs)):
+        x = left + (right - left) * np.arange(len(values)) / max(len(values) - 1, 1)
+        y = bottom - (bottom - top) * (values - low) / (high - low)
+        points = np.stack([x, y], -1).astype(np.int32)
+        cv2.polylines(canvas, [points], False, colours[index % 3], 1, cv2.LINE_AA)
+        cv2.putText(canvas, name, (right - 140, top + 14 + 16 * index), font, 0.45,
+                    colours[index % 3], 1, cv2.LINE_AA)
+    panels.append(canvas)
+  files.write_image(path, np.concatenate(panels, 1)[..., ::-1].astype(np.float32) / 255)
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--data", required=True, help="the generated dataset (make_default_model_data)")
+  parser.add_argument("--run", required=True, help="checkpoint directory of the training")
+  parser.add_argument("--max_minutes", type=float, default=60.0,
+                      help="no new training step starts after this many minutes")
+  parser.add_argument("--checkpoint_minutes", type=float, default=5.0)
+  parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="export directory")
+  parser.add_argument("--no_export", action="store_true")
+  parser.add_argument("--gin_file", action="append", default=[])
+  parser.add_argument("--gin_param", action="append", default=[])
+  parser.add_argument("--output", default=str(RESULTS / "default_model_training.json"))
+  args = parser.parse_args(argv)
+  start = time.monotonic()
+  configs.parse_gin(args.gin_file or ["default_model"], args.gin_param)
+  data = training_data.load_split(args.data, "train")
+  budget = training.RunBudget(deadline=start + 60 * args.max_minutes,
+                              checkpoint_seconds=60 * args.checkpoint_minutes)
+  trained = stages.train(args.run, data, model.Architecture(), budget)
+  configs.save_gin_config(args.run)
+
+  result = {"data": args.data, "run": args.run, "complete": trained.complete,
+            "wall_seconds_this_call": time.monotonic() - start, "stages": {}}
+  for stage, history in trained.histories.items():
+    result["stages"][stage] = {
+        "steps": trained.steps[stage], "finished": trained.finished[stage],
+        "wall_seconds": trained.wall_seconds[stage],
+        "final_losses": {name: float(np.mean(values[-FINAL_WINDOW:]))
+                         for name, values in history.items() if len(values)},
+        "curves": {name: window_means(values, CURVE_WINDOW) for name, values in history.items()},
+        "curve_window_steps": CURVE_WINDOW}
+  result["total_training_wall_seconds"] = sum(
+      stage["wall_seconds"] for stage in result["stages"].values())
+  result["vae_scaling_factor"] = trained.architecture.vae_scaling_factor
+  if not args.no_export and trained.steps.get("unet", 0) > 0:
+    dtype = np.float16
+    sizes = export.write_checkpoint(args.weights, trained.architecture, trained.params,
+                                    data.tokenizer, dtype)
+    result["export"] = {
+        "directory": args.weights, "dtype": np.dtype(dtype).name, "bytes": sizes,
+        "parameters": {name: model.parameter_count(params)
+                       for name, params in trained.params.items()},
+        "max_abs_difference_after_loading": verify_export(Path(args.weights), trained.params,
+                                                          dtype)}
+  output = Path(args.output)
+  files.write_json(output, result)
+  files.write_text(output.with_suffix(".gin"), gin.config_str())
+  plot_curves(trained.histories, output.with_suffix(".png"))
+  status = ", ".join(f"{stage} {steps} steps" for stage, steps in trained.steps.items())
+  print(f"default model: {'complete' if trained.complete else 'in progress'} ({status}); "
+        f"results in {output}" + (f", weights in {args.weights}" if "export" in result else ""))
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,144 @@
+"""Writing the default model as a diffusers-layout checkpoint, and loading it back.
+
+    export.write_checkpoint(directory, architecture, params, tokenizer)
+
+writes
+  model_index.json                  StableDiffusionControlNetInpaintPipeline and its parts;
+  vae/, unet/, controlnet/          config.json + diffusion_pytorch_model.safetensors;
+  text_encoder/                     config.json + model.safetensors (transformers >= 5 names);
+  tokenizer/                        the word tokenizer (`word_tokenizer.WordTokenizer.save`);
+  scheduler/scheduler_config.json   the training noise schedule.
+Tensors get diffusers' / transformers' names and torch layouts (`weights.reference_name`,
+`weights.to_reference_layout`, `clip_text.tensors_from_params`), stored in `dtype` (float16 by
+default: half the size, and the loaders convert exactly back to float32). The directory is built
+next to its destination and swapped in whole, so a reader never sees half of one.
+
+`load_checkpoint` reads it back through the same component loaders any diffusers checkpoint goes
+through (`load_vae`, `load_unet`, `load_controlnet`, `load_text_encoder`, `load_tokenizer`,
+`load_scheduler_config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import safetensors.numpy
+from flax import traverse_util
+
+from signerf_jax import files
+from signerf_jax.default_model import model as model_lib
+from signerf_jax.diffusion import clip_text
+from signerf_jax.diffusion import controlnet as controlnet_lib
+from signerf_jax.diffusion import schedulers
+from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax.diffusion import unet as unet_lib
+from signerf_jax.diffusion import vae as vae_lib
+from signerf_jax.diffusion import weights
+from signerf_jax.diffusion import word_tokenizer
+
+DIFFUSERS_WEIGHTS = "diffusion_pytorch_model.safetensors"
+TRANSFORMERS_WEIGHTS = "model.safetensors"
+PIPELINE_CLASS = "StableDiffusionControlNetInpaintPipeline"
+
+
+def model_index(architecture: model_lib.Architecture) -> dict[str, Any]:
+  """diffusers' model_index.json of the pipeline."""
+  return {"_class_name": PIPELINE_CLASS, "_diffusers_version": model_lib.DIFFUSERS_VERSION,
+          "vae": ["diffusers", "AutoencoderKL"], "text_encoder": ["transformers", "CLIPTextModel"],
+          "tokenizer": ["signerf_jax", word_tokenizer.TOKENIZER_CLASS],
+          "unet": ["diffusers", "UNet2DConditionModel"],
+          "controlnet": ["diffusers", "ControlNetModel"],
+          "scheduler": ["diffusers", architecture.scheduler_class],
+          "safety_checker": [None, None], "feature_extractor": [None, None],
+          "image_encoder": [None, None], "requires_safety_checker": False}
+
+
+def diffusers_tensors(params, dtype=np.float16) -> dict[str, np.ndarray]:
+  """Flax parameters of a UNet, ControlNet or VAE -> diffusers-named torch-layout tensors."""
+  return {weights.reference_name(path): np.ascontiguousarray(
+      weights.to_reference_layout(path, np.asarray(leaf)).astype(dtype))
+          for path, leaf in traverse_util.flatten_dict(params).items()}
+
+
+def _write_safetensors(path: Path, tensors: dict[str, np.ndarray]) -> None:
+  with files.atomic_path(path) as temporary:
+    safetensors.numpy.save_file(tensors, str(temporary))
+
+
+def write_checkpoint(directory: str | os.PathLike, architecture: model_lib.Architecture,
+                     params: dict[str, Any], tokenizer: word_tokenizer.WordTokenizer,
+                     dtype=np.float16) -> dict[str, int]:
+  """Writes the checkpoint (module docstring) in place of `directory`.
+
+  Args:
+    params: {"vae", "unet", "controlnet", "text_encoder"} Flax parameters.
+  Returns:
+    {component: bytes on disk} for every component folder and "total".
+  """
+  directory = Path(directory)
+  directory.parent.mkdir(parents=True, exist_ok=True)
+  building = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}."))
+  try:
+    files.write_json(building / "model_index.json", model_index(architecture))
+    for name, config in (("vae", architecture.vae_config()), ("unet", architecture.unet_config()),
+                         ("controlnet", architecture.controlnet_config())):
+      files.write_json(building / name / "config.json", config)
+      _write_safetensors(building / name / DIFFUSERS_WEIGHTS, diffusers_tensors(params[name], dtype))
+    text_config = architecture.text_encoder_config(tokenizer.vocab_size)
+    files.write_json(building / "text_encoder" / "config.json", text_config)
+    text_tensors = clip_text.tensors_from_params(
+        clip_text.CLIPTextConfig.from_dict(text_config), params["text_encoder"])
+    _write_safetensors(building / "text_encoder" / TRANSFORMERS_WEIGHTS,
+                       {name: tensor.astype(dtype) for name, tensor in text_tensors.items()})
+    tokenizer.save(building / "tokenizer")
+    files.write_json(building / "scheduler" / "scheduler_config.json",
+                     architecture.scheduler_config())
+    os.chmod(building, 0o755)  # mkdtemp makes it private.
+    previous = directory.with_name(f".{directory.name}.previous")
+    if directory.exists():
+      shutil.rmtree(previous, ignore_errors=True)
+      os.replace(directory, previous)
+    os.replace(building, directory)
+    shutil.rmtree(previous, ignore_errors=True)
+  except BaseException:
+    shutil.rmtree(building, ignore_errors=True)
+    raise
+  sizes = {folder.name: sum(path.stat().st_size for path in folder.rglob("*") if path.is_file())
+           for folder in sorted(directory.iterdir()) if folder.is_dir()}
+  sizes["total"] = sum(path.stat().st_size for path in directory.rglob("*") if path.is_file())
+  return sizes
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadedCheckpoint:
+  """A checkpoint read back through the component loaders."""
+
+  vae: vae_lib.AutoencoderKL
+  vae_params: Any
+  unet: unet_lib.UNet2DCondition
+  unet_params: Any
+  controlnet: controlnet_lib.ControlNet
+  controlnet_params: Any
+  text_encoder: clip_text.TextEncoder
+  tokenizer: tokenizer_lib.Tokenizer
+  scheduler: schedulers.SchedulerConfig
+
+
+def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint:
+  """Every component of a checkpoint directory, loaded as real checkpoints are."""
+  directory = Path(directory)
+  vae, vae_params = vae_lib.load_vae(directory)
+  unet, unet_params = unet_lib.load_unet(directory)
+  controlnet, controlnet_params = controlnet_lib.load_controlnet(directory)
+  return LoadedCheckpoint(
+      vae=vae, vae_params=vae_params, unet=unet, unet_params=unet_params, controlnet=controlnet,
+      controlnet_params=controlnet_params,
+      text_encoder=clip_text.load_text_encoder(directory / "text_encoder"),
+      tokenizer=tokenizer_lib.load_tokenizer(directory / "tokenizer"),
+      scheduler=schedulers.load_scheduler_config(directory / "scheduler"))

@@ -1,0 +1,169 @@
+"""The default model's three training stages wired together, resumable across runs.
+
+    run = stages.train(run_directory, data, architecture, budget)
+
+Each stage trains in `<run_directory>/<stage>/` (its checkpoint, `training.CHECKPOINT_NAME`)
+and is skipped once it has done all its steps; a run stops starting new steps at the budget's
+deadline, so training spans as many runs as it needs. What each stage trains and freezes:
+
+  stage        trains                      frozen                      parameters used later
+  vae          AutoencoderKL               -                           raw (no averaging)
+  unet         UNet + text encoder         VAE                         moving average
+  controlnet   ControlNet (from the UNet)  VAE, UNet, text encoder     moving average
+
+Between the VAE and the UNet stage the VAE's latent scaling factor is measured (1 / std of the
+latents of a fixed set of training views), so the diffusion model sees unit-variance latents;
+it is part of the exported VAE config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import gin
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax.default_model import model as model_lib
+from signerf_jax.default_model import training
+from signerf_jax.default_model import training_data
+from signerf_jax.diffusion import schedulers
+
+STAGES = ("vae", "unet", "controlnet")
+SCALING_SEED = 12345  # The views that set the latent scaling factor (fixed, not the run's seed).
+
+
+@gin.configurable("default_model_training")
+@dataclasses.dataclass(frozen=True)
+class TrainingPlan:
+  """The stages' settings (each gin-configurable on its own: `vae_stage`, `unet_stage`, ...).
+
+  Attributes:
+    seed: initialises every stage's parameters (stage settings carry their own batch seeds).
+  """
+
+  seed: int = 0
+  vae: training.VaeStage = dataclasses.field(default_factory=training.VaeStage)
+  unet: training.UNetStage = dataclasses.field(default_factory=training.UNetStage)
+  controlnet: training.ControlNetStage = dataclasses.field(
+      default_factory=training.ControlNetStage)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedModel:
+  """Where training stands and the parameters to export.
+
+  Attributes:
+    architecture: with the measured VAE scaling factor once the VAE stage is done.
+    steps: {stage: steps done}; finished: {stage: whether all steps are done}.
+    params: {"vae", "unet", "text_encoder", "controlnet"}: the parameters reached so far (the
+      ControlNet's initialisation, which adds nothing, before its stage starts); None for the
+      components whose stage has not started.
+    histories: {stage: {metric: [steps done] values}}.
+    wall_seconds: {stage: training time so far, over all runs}.
+  """
+
+  architecture: model_lib.Architecture
+  steps: dict[str, int]
+  finished: dict[str, bool]
+  params: dict[str, Any]
+  histories: dict[str, dict[str, np.ndarray]]
+  wall_seconds: dict[str, float]
+
+  @property
+  def complete(self) -> bool:
+    return all(self.finished.values())
+
+
+def latent_scaling_factor(components: model_lib.Components, vae_params, data, views: int
+                          ) -> float:
+  """1 / std of the VAE's latent means over `views` fixed training views."""
+  images = training_data.vae_batch(data, np.random.default_rng(SCALING_SEED), views, 0.0)
+  vae = components.vae
+  encode = jax.jit(lambda images: vae.apply({"params": vae_params}, 2.0 * images - 1.0,
+                                            method=vae.encode).mean)
+  means = np.concatenate([np.asarray(encode(chunk)) for chunk in np.split(images, views // 32)])
+  return float(1.0 / means.std())
+
+
+def _history(state: training.TrainState) -> dict[str, np.ndarray]:
+  steps = int(state.step)
+  return {name: np.asarray(values[:steps]) for name, values in state.history.items()}
+
+
+def train(run_directory: str | os.PathLike, data: training_data.SplitData,
+          architecture: model_lib.Architecture, budget: training.RunBudget,
+          plan: TrainingPlan | None = None) -> TrainedModel:
+  """Runs (or resumes) the stages in order until all are done or the budget's deadline.
+
+  Args:
+    run_directory: holds one folder per stage.
+    data: the training split.
+    architecture: the model's sizes (its vae_scaling_factor is replaced by the measured one).
+    budget: deadline, checkpoint interval, progress display.
+    plan: stage settings (default: the gin-bound `TrainingPlan`).
+  """
+  plan = TrainingPlan() if plan is None else plan
+  run_directory = Path(run_directory)
+  components = model_lib.build(architecture, data.tokenizer.vocab_size)
+  rngs = {name: np.random.default_rng([plan.seed, index])
+          for index, name in enumerate(("vae", "unet", "text_encoder", "controlnet"))}
+  steps, finished, histories, wall_seconds = {}, {}, {}, {}
+
+  def record(name, state, settings):
+    steps[name] = int(state.step)
+    finished[name] = steps[name] >= settings.num_steps
+    histories[name] = _history(state)
+    wall_seconds[name] = float(state.wall_seconds)
+
+  def result(params):
+    return TrainedModel(architecture, steps, finished, params, histories, wall_seconds)
+
+  vae_state = training.run_stage(
+      "vae", run_directory / "vae", plan.vae, lambda: model_lib.init_vae(components, rngs["vae"]),
+      {}, training.vae_loss_fn(components, plan.vae),
+      lambda step: training_data.vae_batch(data, training_data.step_rng(plan.vae.seed, "vae", step),
+                                           plan.vae.batch_size, plan.vae.masked_fraction),
+      training.VAE_METRICS, budget)
+  record("vae", vae_state, plan.vae)
+  params = {"vae": jax.device_get(vae_state.ema_params)}
+  if not finished["vae"]:
+    return result(params)
+
+  architecture = dataclasses.replace(architecture, vae_scaling_factor=latent_scaling_factor(
+      components, params["vae"], data, plan.vae.scaling_views))
+  components = model_lib.build(architecture, data.tokenizer.vocab_size)
+  scheduler = schedulers.scheduler_config(architecture.scheduler_config())
+
+  def diffusion_batches(settings, stage):
+    return lambda step: jax.tree.map(jnp.asarray, training_data.diffusion_batch(
+        data, training_data.step_rng(settings.seed, stage, step), settings.sheets_per_batch,
+        settings.singles_per_batch, settings.mask_kind_weights, settings.sheet_mode_weights,
+        settings.caption_dropout))
+
+  unet_state = training.run_stage(
+      "unet", run_directory / "unet", plan.unet,
+      lambda: {"unet": model_lib.init_unet(components, rngs["unet"]),
+               "text_encoder": model_lib.init_text_encoder(components, rngs["text_encoder"])},
+      {"vae": params["vae"]}, training.diffusion_loss_fn(components, scheduler, plan.unet, False),
+      diffusion_batches(plan.unet, "unet"), training.DIFFUSION_METRICS, budget)
+  record("unet", unet_state, plan.unet)
+  params.update(jax.device_get(unet_state.ema_params))
+  initial_controlnet = lambda: model_lib.init_controlnet(components, params["unet"],
+                                                          rngs["controlnet"])
+  if not finished["unet"]:
+    params["controlnet"] = initial_controlnet()
+    return result(params)
+
+  controlnet_state = training.run_stage(
+      "controlnet", run_directory / "controlnet", plan.controlnet,
+      lambda: {"controlnet": initial_controlnet()}, dict(params),
+      training.diffusion_loss_fn(components, scheduler, plan.controlnet, True),
+      diffusion_batches(plan.controlnet, "controlnet"), training.DIFFUSION_METRICS, budget)
+  record("controlnet", controlnet_state, plan.controlnet)
+  params.update(jax.device_get(controlnet_state.ema_params))
+  return result(params)

@@ -1,0 +1,27 @@
+"""`signerf preview`: candidate reference sheets side by side, and per-tile re-rolls."""
+
+from __future__ import annotations
+
+import argparse
+
+from signerf_jax.editing.commands import add_edit_arguments, gin_value, run_stages
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+  add_edit_arguments(parser)
+  parser.add_argument("--seeds", type=int, nargs="+", help="one candidate sheet per seed")
+  parser.add_argument("--reroll", nargs="+", metavar="RECIPE",
+                      help="re-rolled candidates, e.g. 2/1,4@7: sheet 2 with tiles 1 and 4 "
+                      "generated again with seed 7, the other tiles kept")
+
+
+def run(args: argparse.Namespace) -> int:
+  bindings = []
+  if args.seeds is not None:
+    bindings.append(f"PreviewConfig.seeds = {gin_value(args.seeds)}")
+  if args.reroll is not None:
+    bindings.append(f"PreviewConfig.recipes = {gin_value(args.reroll)}")
+  edit, seconds = run_stages("preview", args, bindings)
+  print(f"signerf preview: candidates in {edit.directory.path('preview', 'candidates')}, side "
+        f"by side in {edit.directory.path('preview', 'preview.png')} ({seconds:.0f} s)")
+  return 0

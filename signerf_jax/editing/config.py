@@ -1,0 +1,266 @@
+"""What an edit does and how (gin): the settings every pipeline stage reads.
+
+An edit is fully described by these gin-bound dataclasses (saved as the edit directory's
+config.gin); the command-line flags of `signerf edit` are shorthand for bindings of them:
+
+  EditConfig       the inputs: dataset, original run, prompt, seed, model checkpoints, the sheet
+                   to use, whether to fine-tune or retrain, the optional second iteration;
+  SelectionConfig  where: an axis-aligned box, or a proxy mesh (file or primitive) placed by a
+                   similarity transform or stood on the ground; mask dilation and feathering;
+  SheetConfig      the reference sheet: grid, tile size, full frames or crops around the selection;
+  UpdateConfig     the image set update: views per device;
+  FinetuneConfig   the NeRF update's losses (L1, optional LPIPS on rendered patches);
+  EvaluationConfig the metrics and renders written at the end.
+Per-stage settings owned by other modules are gin-bound where they live:
+`pipeline.GenerationOptions` (the diffusion knobs; scoped `first_iteration/` and
+`second_iteration/` so the second iteration can stick closer to its input, as in the paper's
+table), `train.TrainConfig` (scoped `original/`, `finetune/` and `retrain/`) and
+`reference_cameras.place_reference_cameras`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import gin
+
+from signerf_jax import default_model
+from signerf_jax.errors import InputError
+
+# The shipped model (diffusers layout), trained by the project (see default_model/).
+DEFAULT_MODEL_DIR = Path(default_model.__file__).resolve().parent / "weights"
+SELECTION_KINDS = ("box", "proxy")
+NERF_UPDATES = ("auto", "finetune", "retrain")
+PRIMITIVE_PREFIX = "primitive:"
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class EditConfig:
+  """The inputs of an edit.
+
+  Attributes:
+    data: the dataset directory (nerfstudio, Blender or LLFF); may be left empty when
+      `original_run` records it.
+    downscale: integer image downscale of the dataset.
+    original_run: an already trained NeRF run of that dataset ("" trains one in the edit
+      directory, gin scope `original/TrainConfig`).
+    prompt, negative_prompt: the text conditioning.
+    seed: seeds the image set update (and names the default sheet).
+    sheet: the reference sheet to propagate, as a recipe (`generation.SheetRecipe`): "3" is the
+      sheet generated with seed 3, "3/1,4@7" that sheet with tiles 1 and 4 re-rolled with seed 7.
+      "" means str(seed).
+    model: a diffusers inpainting pipeline directory (default: the shipped model).
+    controlnet: a diffusers ControlNet directory replacing (or adding) the pipeline's ("": the
+      pipeline's own).
+    scheduler_kind: "ddim", "dpm_solver_multistep" or "euler_ancestral" to override the
+      checkpoint's scheduler class ("" keeps it; needed for e.g. PNDM checkpoints).
+    nerf_update: "finetune" (from the original parameters, re-initialised optimiser, L1 + LPIPS:
+      the paper's choice for edits), "retrain" (from scratch: its choice for inserted objects),
+      or "auto" (retrain for proxy selections, fine-tune for box selections).
+    second_iteration: run steps 4-7 once more from the edited NeRF (paper, step 8), with the
+      `second_iteration/GenerationOptions` settings.
+    second_sheet: the sheet recipe of the second iteration ("": str(seed)).
+  """
+
+  data: str = ""
+  downscale: int = 1
+  original_run: str = ""
+  prompt: str = ""
+  negative_prompt: str = ""
+  seed: int = 0
+  sheet: str = ""
+  model: str = str(DEFAULT_MODEL_DIR)
+  controlnet: str = ""
+  scheduler_kind: str = ""
+  nerf_update: str = "auto"
+  second_iteration: bool = False
+  second_sheet: str = ""
+
+  def __post_init__(self):
+    if not self.prompt.strip():
+      raise InputError("an edit needs a prompt", field="EditConfig.prompt")
+    if self.nerf_update not in NERF_UPDATES:
+      raise InputError(f"must be one of {NERF_UPDATES}, got {self.nerf_update!r}",
+                       field="EditConfig.nerf_update")
+    if isinstance(self.downscale, bool) or self.downscale < 1:
+      raise InputError(f"must be a positive integer, got {self.downscale!r}",
+                       field="EditConfig.downscale")
+
+  def sheet_recipe(self, iteration: int) -> str:
+    recipe = self.sheet if iteration == 1 else self.second_sheet
+    return recipe or str(self.seed)
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class SelectionConfig:
+  """Where to edit (paper, "Selection Modes").
+
+  Coordinates are in the scene frame the NeRF works in (`frame="scene"`: the dataset's
+  normalised frame, the one `signerf render` and the synthetic scenes use) or in the dataset's
+  source frame (`frame="source"`, e.g. the COLMAP frame of a capture), mapped through the
+  dataset's `world_from_source`.
+
+  Attributes:
+    kind: "box" (shape selection) or "proxy" (proxy selection).
+    box_min, box_max: the box's corners.
+    box_mask_mode: "surface" (the NeRF surface inside the box) or "silhouette" (the whole
+      visible box, letting an edit grow into empty space); see `geometry.selection`.
+    proxy: a mesh file (OBJ, PLY, GLB, STL, OFF) or "primitive:<name>" with name one of box,
+      sphere, cylinder, capsule, cow.
+    scale, rotation_degrees, translation: the similarity transform placing the proxy (x -> t +
+      s R x, R from Euler angles about x, then y, then z).
+    ground_position: when given, the proxy is instead stood upright on the ground with its
+      footprint centred here (`geometry.mesh.place_on_ground`), scaled so its largest side is
+      `ground_size` and turned by `heading_degrees` about the scene's up direction.
+    mesh_up: the proxy's own up direction (the shared meshes are +y up).
+    up: the scene's up direction (None: the dataset cameras' mean up vector).
+    frame: "scene" or "source" (see above).
+    dilation_radius, feather_radius: mask growth and soft edge in pixels at 512 pixels
+      (`geometry.masks`): the generated region may exceed the selection slightly.
+    min_accumulation: NeRF opacity below which a pixel counts as empty.
+    min_mask_pixels: views with fewer mask pixels are not edited (reported).
+  """
+
+  kind: str = "box"
+  box_min: tuple[float, float, float] | None = None
+  box_max: tuple[float, float, float] | None = None
+  box_mask_mode: str = "surface"
+  proxy: str = ""
+  scale: float = 1.0
+  rotation_degrees: tuple[float, float, float] = (0.0, 0.0, 0.0)
+  translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+  ground_position: tuple[float, float, float] | None = None
+  ground_size: float = 0.5
+  heading_degrees: float = 0.0
+  mesh_up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+  up: tuple[float, float, float] | None = None
+  frame: str = "scene"
+  dilation_radius: float = 24.0
+  feather_radius: float = 8.0
+  min_accumulation: float = 0.5
+  min_mask_pixels: int = 1
+
+  def __post_init__(self):
+    if self.kind not in SELECTION_KINDS:
+      raise InputError(f"must be one of {SELECTION_KINDS}, got {self.kind!r}",
+                       field="SelectionConfig.kind")
+    if self.frame not in ("scene", "source"):
+      raise InputError(f"must be 'scene' or 'source', got {self.frame!r}",
+                       field="SelectionConfig.frame")
+    if self.kind == "box" and (self.box_min is None or self.box_max is None):
+      raise InputError("a box selection needs box_min and box_max (--box)", field="box")
+    if self.kind == "proxy" and not self.proxy:
+      raise InputError("a proxy selection needs a mesh file or primitive (--proxy)",
+                       field="proxy")
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class SheetConfig:
+  """The reference sheet (paper, "Reference Sheet"; `editing.sheet`).
+
+  Attributes:
+    rows, columns, slot_row, slot_column: the grid and its empty slot (2 x 3 holds the paper's
+      five reference views).
+    tile_size: tile side in pixels; None = the model's native resolution (64 for the shipped
+      model, 512 for SD 1.5, 1024 for SDXL).
+    reference_cameras: "" places them automatically; otherwise a Blender-style JSON file
+      (`camera_angle_x`, `frames[].transform_matrix`, scene frame) with one camera per tile.
+    crops: tiles of dataset views are crops around the selection (`editing.crops`), pasted back
+      through the mask, instead of whole downscaled frames.
+    crop_margin, crop_max_upscale: see `crops.selection_crop_boxes`.
+  """
+
+  rows: int = 2
+  columns: int = 3
+  slot_row: int = -1
+  slot_column: int = -1
+  tile_size: int | None = None
+  reference_cameras: str = ""
+  crops: bool = False
+  crop_margin: float = 0.15
+  crop_max_upscale: float = 2.0
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class PreviewConfig:
+  """The candidate sheets `signerf preview` shows side by side.
+
+  Attributes:
+    seeds: one fresh sheet per seed.
+    recipes: further sheet recipes, e.g. re-rolls "2/1,4@7" of tiles of a candidate.
+  """
+
+  seeds: tuple[int, ...] = (0, 1, 2, 3)
+  recipes: tuple[str, ...] = ()
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class UpdateConfig:
+  """The image set update (`editing.update`).
+
+  Attributes:
+    views_per_device: views each device inpaints per batch; the batch is this times the number
+      of devices (the last batch is padded). A fixed per-device size keeps every device's
+      program the same whatever the device count.
+  """
+
+  views_per_device: int = 4
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class FinetuneConfig:
+  """Losses of the NeRF update (`editing.finetune`); steps and learning rates are
+  `finetune/TrainConfig` and `retrain/TrainConfig`.
+
+  Attributes:
+    lpips_weights: a safetensors file of VGG-LPIPS weights (`metrics.lpips`); "" = no LPIPS.
+    lpips_weight: the LPIPS term's weight (the paper applies LPIPS when fine-tuning edits).
+    patch_size: side of the square patches rendered for LPIPS (at least 16).
+  """
+
+  lpips_weights: str = ""
+  lpips_weight: float = 0.1
+  patch_size: int = 32
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class EvaluationConfig:
+  """What `signerf eval --edit` measures and writes.
+
+  Attributes:
+    clip_model: a transformers CLIP checkpoint (`metrics.clip_similarity`); "" skips CLIP.
+    source_caption: CLIP's caption of the unedited scene.
+    independent_views: how many edited views get an independent per-view edit for the
+      consistency comparison (0 skips it).
+    video_frames: frames of the before/after orbit video (0: no video).
+    video_fps: its frame rate.
+  """
+
+  clip_model: str = ""
+  source_caption: str = "a photo of a scene"
+  independent_views: int = 12
+  video_frames: int = 48
+  video_fps: int = 12
+
+
+def as_json(config: Any) -> dict[str, Any]:
+  """A settings dataclass as a JSON-friendly dict (for provenance and stage keys)."""
+  return {field.name: _jsonable(getattr(config, field.name))
+          for field in dataclasses.fields(config)}
+
+
+def _jsonable(value):
+  if isinstance(value, tuple):
+    return [_jsonable(item) for item in value]
+  if isinstance(value, Path):
+    return str(value)
+  return value

@@ -1,0 +1,95 @@
+"""Measuring an edit: background preservation, multi-view consistency, CLIP directional
+similarity, and adherence to the prompt's colour and the proxy's shape.
+
+* Background preservation (paper, appendix "Metrics"): renders of the original and the edited
+  NeRF from held-out cameras, compared outside the selection's inpainting mask
+  (`metrics.background`: the paper's PSNR_bg / SSIM_bg and background-only variants).
+* Consistency (paper, appendix "Multiview Consistency"): verified SIFT correspondences between
+  neighbouring views (`metrics.consistency`) of the original images, of the sheet-propagated edit
+  and of independent per-view edits (each view inpainted on its own with the same prompt and
+  seed, `independent_edits`), and their change relative to the original images.
+* CLIP text-image directional similarity (`metrics.clip_similarity`) of the image edit and of
+  the NeRF renders, when CLIP weights are given.
+* Prompt colour adherence: the share of views whose edited region's dominant colour
+  (`default_model.appearance.dominant_color`) is the colour the prompt names (when it names one
+  of the shipped model's palette colours).
+* Shape adherence (proxy selections): IoU between the pixels the edit changed and the proxy's
+  visible silhouette.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax import camera as camera_lib
+from signerf_jax.default_model import appearance, captions
+from signerf_jax.editing import crops
+from signerf_jax.editing import sheet as sheet_lib
+from signerf_jax.editing.generation import Generator
+from signerf_jax.editing.update import TILE_FILL_COLOR, SlotViews
+from signerf_jax.metrics import consistency
+
+# A pixel counts as changed by the edit when its colour moved by more than this (mean over RGB).
+CHANGE_THRESHOLD = 0.1
+
+
+def independent_edits(generator: Generator, layout: sheet_lib.SheetLayout, views: SlotViews,
+                      keys) -> np.ndarray:
+  """Each view inpainted on its own (a single tile, no sheet), pasted back through its mask.
+
+  Returns:
+    [n, H, W, 3] float32.
+  """
+  height, width = layout.tile_height, layout.tile_width
+  boxes = jnp.asarray(views.boxes, jnp.float32)
+  edited = []
+  for start in range(0, len(keys), generator.batch_size):
+    part = slice(start, start + generator.batch_size)
+    image, control, mask = (
+        crops.crop_to_tiles(jnp.asarray(array[part], jnp.float32), boxes[part], height, width,
+                            fill_value=fill)
+        for array, fill in ((views.images, TILE_FILL_COLOR), (views.controls[..., None], 0.0),
+                            (views.masks[..., None], 0.0)))
+    generated = generator(image, mask, control, keys[part])
+    edited.append(np.asarray(crops.paste_tiles(jnp.asarray(views.images[part]), generated,
+                                               boxes[part], jnp.asarray(views.masks[part]))))
+  return np.concatenate(edited)
+
+
+def consistency_comparison(image_sets: dict[str, np.ndarray], cameras: camera_lib.Cameras,
+                           masks: np.ndarray) -> dict[str, Any]:
+  """Verified correspondences of each image set (same views, cameras and keypoint masks), and
+  the relative change of every set against the "original" one."""
+  reports = {name: consistency.image_set_consistency(images, cameras, masks)
+             for name, images in image_sets.items()}
+  result = {name: report.summary() for name, report in reports.items()}
+  result["relative_to_original"] = {
+      name: consistency.relative_change(report, reports["original"])
+      for name, report in reports.items() if name != "original"}
+  return result
+
+
+def prompt_color_adherence(prompt: str, images: np.ndarray, selected: np.ndarray
+                           ) -> dict[str, Any] | None:
+  """Share of views whose selected pixels' dominant colour is the prompt's colour (None when the
+  prompt names no palette colour or no view has selected pixels)."""
+  color = captions.parse_caption(prompt).color
+  views = [index for index in range(len(images)) if selected[index].any()]
+  if color is None or not views:
+    return None
+  found = [appearance.dominant_color(images[index][selected[index]]) for index in views]
+  return {"color": color, "share": float(np.mean([name == color for name in found])),
+          "dominant_colors": found}
+
+
+def shape_adherence(original: np.ndarray, edited: np.ndarray, selected: np.ndarray,
+                    masks: np.ndarray) -> float | None:
+  """Mean IoU over views between the changed pixels (inside the inpainting mask) and the
+  proxy's visible silhouette `selected`; None when no view shows the proxy."""
+  changed = (np.mean(np.abs(edited - original), axis=-1) > CHANGE_THRESHOLD) & (masks > 0)
+  ious = [np.sum(changed[index] & selected[index]) / np.sum(changed[index] | selected[index])
+          for index in range(len(original)) if selected[index].any()]
+  return float(np.mean(ious)) if ious else None

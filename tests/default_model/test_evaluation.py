@@ -1,0 +1,192 @@
+"""The default model's quality-gate metrics, on constructed arrays with known answers."""
+
+import types
+
+import numpy as np
+import pytest
+
+from signerf_jax.default_model import batches, captions, evaluation, samples
+from signerf_jax.errors import InputError
+
+RED, BLUE, GREEN = (0.8, 0.1, 0.08), (0.12, 0.25, 0.85), (0.15, 0.65, 0.18)
+
+
+def striped_ground(size=24):
+  """[size, size, 3] a grey striped background (a texture the segmentation must ignore)."""
+  stripes = 0.35 + 0.3 * (np.arange(size) // 3 % 2)
+  return np.repeat(np.broadcast_to(stripes[None, :, None], (size, size, 1)), 3, -1).astype(
+      np.float32)
+
+
+def scene_with_object():
+  """(generated, background, mask, the object's true silhouette) for one 24-pixel view.
+
+  A red 8 x 8 object with a background-coloured pinhole, a one-pixel speck and a small
+  change just below the threshold inside the mask, and a large change outside it."""
+  background = striped_ground()
+  generated = background.copy()
+  silhouette = np.zeros((24, 24), bool)
+  silhouette[6:14, 8:16] = True
+  generated[silhouette] = RED
+  generated[9, 11] = background[9, 11]  # A pinhole: the object matches the ground there.
+  generated[19, 4] += 0.5  # A speck of regenerated texture.
+  generated[2:5, 2:5] += 0.08  # Below the threshold.
+  generated[0:4, 20:24] = BLUE  # Outside the mask.
+  mask = np.zeros((24, 24), np.float32)
+  mask[1:22, 1:19] = 1.0
+  return generated, background, mask, silhouette
+
+
+def test_segmentation_finds_the_object_and_ignores_specks_and_the_unmasked():
+  generated, background, mask, silhouette = scene_with_object()
+  found = evaluation.segment_objects(generated[None], background[None], mask[None],
+                                     difference_threshold=0.1, min_component_pixels=4)
+  np.testing.assert_array_equal(found[0], silhouette)
+
+
+def test_segmentation_without_clean_up_keeps_the_speck_and_the_hole():
+  generated, background, mask, silhouette = scene_with_object()
+  found = evaluation.segment_objects(generated[None], background[None], mask[None],
+                                     difference_threshold=0.1, min_component_pixels=1)[0]
+  assert found[19, 4] and not found[9, 11]
+  assert found.sum() == silhouette.sum()  # One pixel missing (the hole), one extra (the speck).
+
+
+@pytest.mark.parametrize("threshold, expected", [(0.05, True), (0.2, False)])
+def test_segmentation_threshold_is_per_channel(threshold, expected):
+  background = np.full((1, 8, 8, 3), 0.5, np.float32)
+  generated = background.copy()
+  generated[0, 2:6, 2:6, 1] += 0.1  # One channel moves by 0.1.
+  found = evaluation.segment_objects(generated, background, np.ones((1, 8, 8)), threshold, 4)
+  assert found[0, 3, 3] == expected
+
+
+def test_segmentation_recovers_rendered_objects(tiny_sampling):
+  """On true renders (a perfect generator) the IoU with the silhouette is near 1."""
+  ious = []
+  for seed in range(4):
+    views = samples.make_sample(np.random.default_rng(seed), tiny_sampling,
+                                captions.CaptionSettings(), sheet=False).views
+    rgb, background = (views[name].astype(np.float32) / 255 for name in ("rgb", "background_rgb"))
+    mask = batches.box_masks(views["boxes"], tiny_sampling.image_size, tiny_sampling.image_size)
+    found = evaluation.segment_objects(rgb, background, mask, 0.1, 4)
+    ious.append(evaluation.silhouette_iou(found, views["silhouette"] > 0)[0])
+  assert np.mean(ious) > 0.9, ious
+
+
+def test_silhouette_iou_known_values():
+  left, right = np.zeros((2, 8, 8), bool), np.zeros((2, 8, 8), bool)
+  left[0, 2:6, 0:4] = True
+  right[0, 2:6, 2:6] = True  # Overlap of 8 pixels, union of 24.
+  ious = evaluation.silhouette_iou(np.concatenate([left, left[:1], right[:1]]),
+                                   np.concatenate([right, left[:1], np.zeros((1, 8, 8), bool)]))
+  np.testing.assert_allclose(ious, [1 / 3, 1.0, 1.0, 0.0])  # Both empty counts as 1.
+
+
+def test_object_colors_names_and_means():
+  images = np.zeros((3, 8, 8, 3), np.float32)
+  images[0, 2:6, 2:6] = RED
+  images[1, 2:6, 2:6] = BLUE
+  objects = np.zeros((3, 8, 8), bool)
+  objects[:2, 2:6, 2:6] = True
+  names, means = evaluation.object_colors(images, objects)
+  assert names == ["red", "blue", None]
+  np.testing.assert_allclose(means[:2], [RED, BLUE], atol=1e-6)
+  assert np.all(np.isnan(means[2]))
+
+
+def test_color_agreement_counts_pairs():
+  assert evaluation.color_agreement(["red", "red", "blue"]) == pytest.approx(1 / 3)
+  assert evaluation.color_agreement(["green"] * 5) == 1.0
+  assert evaluation.color_agreement([None, None]) == 0.0  # Missing objects agree with nothing.
+  assert evaluation.color_agreement(["red"], ["red", "blue", "red", "red"]) == 0.75
+  with pytest.raises(InputError):
+    evaluation.color_agreement(["red"])
+
+
+def test_mean_color_distance_skips_missing_objects():
+  means = np.array([[0.0, 0.0, 0.0], [0.0, 0.3, 0.4], [np.nan] * 3])
+  assert evaluation.mean_color_distance(means) == pytest.approx(0.5)
+  assert evaluation.mean_color_distance(means[:1], means) == pytest.approx(0.25)
+  assert np.isnan(evaluation.mean_color_distance(means[2:], means[:1]))
+
+
+@pytest.mark.parametrize("ious, rising, shape_passes", [
+    ([0.3, 0.5, 0.7, 0.8, 0.85], True, True),
+    ([0.3, 0.5, 0.7, 0.86, 0.85], True, True),  # Within the tolerance.
+    ([0.3, 0.5, 0.9, 0.8, 0.85], False, False),
+    ([0.85] * 5, False, False),  # The scale changes nothing.
+    ([0.3, 0.5, 0.6, 0.7, 0.75], True, False),
+])
+def test_quality_gates_shape(ious, rising, shape_passes):
+  gates = evaluation.quality_gates(0.95, ious, (0.0, 0.25, 0.5, 0.75, 1.0),
+                                   {"sheet": 0.9, "slot_update": 0.8, "independent": 0.2},
+                                   evaluation.QualityGates())
+  assert gates["shape_adherence"]["rising"] == rising
+  assert gates["shape_adherence"]["passed"] == shape_passes
+  assert gates["shape_adherence"]["iou_at_full_scale"] == ious[-1]
+  assert gates["prompt_adherence"]["passed"] and gates["consistency"]["passed"]
+
+
+@pytest.mark.parametrize("color, agreement, color_passes, consistency_passes", [
+    (0.89, {"sheet": 0.9, "slot_update": 0.8, "independent": 0.2}, False, True),
+    (0.9, {"sheet": 0.9, "slot_update": 0.45, "independent": 0.2}, True, False),
+    (1.0, {"sheet": 0.4, "slot_update": 0.9, "independent": 0.2}, True, False),
+])
+def test_quality_gates_color_and_consistency(color, agreement, color_passes, consistency_passes):
+  gates = evaluation.quality_gates(color, [0.3, 0.9], (0.0, 1.0), agreement,
+                                   evaluation.QualityGates())
+  assert gates["prompt_adherence"]["passed"] == color_passes
+  assert gates["consistency"]["passed"] == consistency_passes
+  assert gates["consistency"]["margins_over_independent"]["slot_update"] == pytest.approx(
+      agreement["slot_update"] - agreement["independent"])
+
+
+def test_evaluation_keys_are_reproducible_and_distinct():
+  key = evaluation.evaluation_key(0, "sheet", 3, 1)
+  np.testing.assert_array_equal(key, evaluation.evaluation_key(0, "sheet", 3, 1))
+  assert key.shape == (2,) and key.dtype == np.uint32
+  others = [evaluation.evaluation_key(*arguments) for arguments in
+            ((1, "sheet", 3, 1), (0, "slot", 3, 1), (0, "sheet", 4, 1), (0, "sheet", 3, 2))]
+  assert len({tuple(key)} | {tuple(other) for other in others}) == 5
+
+
+def test_call_timer_separates_compilation(monkeypatch):
+  clock = iter([0.0, 10.0, 20.0, 22.0, 30.0, 32.5, 40.0, 41.0, 50.0, 56.0])
+  monkeypatch.setattr(evaluation, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
+  timer = evaluation.CallTimer()
+  shape = (64, 64, 3)
+  for task, input_shape in (("single", shape), ("single", shape), ("single", shape),
+                            ("slot", (128, 192, 3)), ("other_slot", (128, 192, 3))):
+    timer.time(task, input_shape, 4, lambda: None)
+  summary = timer.summary()
+  # Calls of 10, 2, 2.5 s: the first compiled.
+  assert summary["single"]["first_call_seconds"] == 10.0
+  assert summary["single"]["steady_call_seconds"] == pytest.approx(2.25)
+  assert summary["single"]["compile_seconds"] == pytest.approx(7.75)
+  assert summary["single"]["seconds_per_sample"] == pytest.approx(2.25 / 4)
+  # A new shape compiles again; a task reusing it does not.
+  assert summary["slot"]["steady_call_seconds"] is None
+  assert summary["slot"]["compile_seconds"] is None
+  assert summary["other_slot"]["steady_call_seconds"] == 6.0
+  assert "first_call_seconds" not in summary["other_slot"]
+
+
+def test_settings_need_ascending_scales_with_full_scale():
+  with pytest.raises(InputError) as error:
+    evaluation.EvaluationSettings(controlnet_scales=(0.0, 0.5))
+  assert error.value.field == "default_model_evaluation.controlnet_scales"
+  with pytest.raises(InputError):
+    evaluation.EvaluationSettings(controlnet_scales=(1.0, 0.5))
+
+
+def test_select_samples_takes_sheets_without_a_color():
+  singles = {"caption": np.array(["a cow"] * 5)}
+  sheets = {"names_color": np.array([True, False, True, False, False])}
+  settings = evaluation.EvaluationSettings(num_singles=3, num_sheets=2)
+  single_indices, sheet_indices = evaluation.select_samples(singles, sheets, settings)
+  np.testing.assert_array_equal(single_indices, [0, 1, 2])
+  np.testing.assert_array_equal(sheet_indices, [1, 3])
+  with pytest.raises(InputError) as error:
+    evaluation.select_samples(singles, sheets, evaluation.EvaluationSettings(num_singles=6))
+  assert error.value.field == "default_model_evaluation.num_singles"

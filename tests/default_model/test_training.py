@@ -1,0 +1,176 @@
+"""Training the default model on a tiny configuration: batches, losses that go down, resuming,
+checkpoints, and the convolution gradients training relies on."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from signerf_jax.default_model import model, training, training_data
+from signerf_jax.diffusion import layers, schedulers
+from signerf_jax.errors import InputError
+
+VAE_SETTINGS = training.VaeStage(num_steps=4, batch_size=4, learning_rate=3e-3, warmup_steps=1)
+DIFFUSION_SETTINGS = dict(sheets_per_batch=2, singles_per_batch=2, learning_rate=2e-3,
+                          warmup_steps=1, num_steps=3, caption_dropout=0.0)
+
+
+@pytest.fixture(scope="module")
+def components(tiny_architecture, tiny_training_data):
+  return model.build(tiny_architecture, tiny_training_data.tokenizer.vocab_size)
+
+
+def test_batches_are_deterministic_per_step(tiny_training_data):
+  settings = training.UNetStage(**DIFFUSION_SETTINGS)
+  make = lambda step: training_data.diffusion_batch(
+      tiny_training_data, training_data.step_rng(0, "unet", step), 2, 3,
+      settings.mask_kind_weights, settings.sheet_mode_weights, 0.5)
+  first, again, other = make(7), make(7), make(8)
+  for kind in ("sheets", "singles"):
+    for name in first[kind]:
+      np.testing.assert_array_equal(first[kind][name], again[kind][name])
+  assert any(not np.array_equal(first["singles"][name], other["singles"][name])
+             for name in first["singles"])
+  size = tiny_training_data.layout.tile_height
+  assert first["sheets"]["image"].shape == (2, 2 * size, 3 * size, 3)
+  assert first["singles"]["control"].shape == (3, size, size, 1)
+  assert first["sheets"]["ids"].shape == (2, tiny_training_data.tokenizer.max_length)
+
+
+def test_caption_dropout_gives_the_empty_prompt(tiny_training_data):
+  batch = training_data.diffusion_batch(tiny_training_data, np.random.default_rng(0), 1, 4,
+                                        (1, 1, 1, 1, 1), (1, 1, 1), caption_dropout=1.0)
+  empty = tiny_training_data.tokenizer.tokenize([""])
+  np.testing.assert_array_equal(batch["singles"]["ids"], np.repeat(empty, 4, 0))
+  with pytest.raises(InputError, match="mask_kind_weights"):
+    training_data.diffusion_batch(tiny_training_data, np.random.default_rng(0), 1, 1, (1, 1),
+                                  (1, 1, 1), 0.0)
+
+
+def test_vae_batch_greys_out_masked_views(tiny_training_data):
+  unmasked = training_data.vae_batch(tiny_training_data, np.random.default_rng(3), 6, 0.0)
+  masked = training_data.vae_batch(tiny_training_data, np.random.default_rng(3), 6, 1.0)
+  assert unmasked.shape == (6, 32, 32, 3) and unmasked.dtype == np.float32
+  changed = np.any(masked != unmasked, axis=-1)
+  assert changed.any() and np.all(masked[changed] == training_data.EMPTY_SLOT_GREY)
+
+
+def test_inpainting_conditioning_follows_diffusers(components):
+  """Masked pixels are 0 in [-1, 1] before encoding; the latent mask takes every f-th pixel."""
+  vae_params = model.init_vae(components, np.random.default_rng(0))
+  image = jax.random.uniform(jax.random.key(0), (1, 8, 8, 3))
+  mask = jnp.zeros((1, 8, 8, 1)).at[:, 2:6, 3:8].set(1.0)
+  key = jax.random.key(1)
+  latents, latent_mask, masked_latents = training.inpainting_conditioning(
+      components, vae_params, image, mask, key)
+  np.testing.assert_array_equal(latent_mask[0, ..., 0], mask[0, ::2, ::2, 0])
+  # Encoded together in one batch: the masked image is the second half, with the same noise.
+  both = training.encode_latents(components, vae_params, jnp.concatenate(
+      [2 * image - 1, (2 * image - 1) * (1 - mask)]), key)
+  np.testing.assert_allclose(masked_latents, both[1:], atol=1e-6)
+  np.testing.assert_allclose(latents, both[:1], atol=1e-6)
+
+
+def _loss_goes_down(loss_fn, params, frozen, batch, settings, steps=3):
+  evaluate = jax.jit(lambda params: loss_fn(params, frozen, batch, jax.random.key(5))[0])
+  state = training.init_state(params, settings, ("loss", "gradient_norm") + tuple(
+      name for name in training.DIFFUSION_METRICS + training.VAE_METRICS
+      if name in loss_fn(params, frozen, batch, jax.random.key(0))[1]))
+  train_step = training.make_train_step(loss_fn, settings)
+  before = float(evaluate(state.params))
+  for _ in range(steps):
+    state = train_step(state, frozen, batch)
+  assert train_step._cache_size() == 1  # pylint: disable=protected-access
+  after = float(evaluate(state.params))
+  assert np.isfinite(np.asarray(state.history["gradient_norm"])[:int(state.step)]).all()
+  return before, after
+
+
+def test_vae_steps_reduce_the_loss(components, tiny_training_data):
+  images = training_data.vae_batch(tiny_training_data, np.random.default_rng(0), 4, 0.3)
+  before, after = _loss_goes_down(training.vae_loss_fn(components, VAE_SETTINGS),
+                                  model.init_vae(components, np.random.default_rng(0)), {},
+                                  images, VAE_SETTINGS)
+  assert after < 0.9 * before
+
+
+@pytest.mark.parametrize("stage", ["unet", "controlnet"])
+def test_diffusion_steps_reduce_the_loss(stage, components, tiny_architecture,
+                                         tiny_training_data):
+  settings = (training.UNetStage if stage == "unet" else training.ControlNetStage)(
+      **DIFFUSION_SETTINGS)
+  batch = jax.tree.map(jnp.asarray, training_data.diffusion_batch(
+      tiny_training_data, np.random.default_rng(0), 2, 2, settings.mask_kind_weights,
+      settings.sheet_mode_weights, 0.0))
+  rng = np.random.default_rng(0)
+  weights = {"vae": model.init_vae(components, rng), "unet": model.init_unet(components, rng),
+             "text_encoder": model.init_text_encoder(components, rng)}
+  scheduler = schedulers.scheduler_config(tiny_architecture.scheduler_config())
+  if stage == "unet":
+    params, frozen = {"unet": weights["unet"], "text_encoder": weights["text_encoder"]}, {
+        "vae": weights["vae"]}
+  else:
+    params = {"controlnet": model.init_controlnet(components, weights["unet"], rng)}
+    frozen = weights
+  loss_fn = training.diffusion_loss_fn(components, scheduler, settings, stage == "controlnet")
+  before, after = _loss_goes_down(loss_fn, params, frozen, batch, settings)
+  assert after < before
+
+
+def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_training_data):
+  loss_fn = training.vae_loss_fn(components, VAE_SETTINGS)
+  make_batch = lambda step: training_data.vae_batch(
+      tiny_training_data, training_data.step_rng(0, "vae", step), 4, 0.3)
+  initial = lambda: model.init_vae(components, np.random.default_rng(0))
+  run = lambda directory, max_steps: training.run_stage(
+      "vae", directory, VAE_SETTINGS, initial, {}, loss_fn, make_batch, training.VAE_METRICS,
+      training.RunBudget(max_steps=max_steps, progress=False))
+  straight = run(tmp_path / "straight", None)
+  first = run(tmp_path / "resumed", 2)
+  assert int(first.step) == 2 and np.isnan(np.asarray(first.history["loss"][2:])).all()
+  resumed = run(tmp_path / "resumed", None)
+  assert int(resumed.step) == VAE_SETTINGS.num_steps
+  same = lambda tree: jax.tree.map(np.asarray, tree)
+  for field in ("params", "ema_params", "opt_state", "history"):
+    jax.tree.map(np.testing.assert_array_equal, same(getattr(resumed, field)),
+                 same(getattr(straight, field)))
+  assert training.stage_finished(tmp_path / "resumed", VAE_SETTINGS)
+  assert not training.stage_finished(tmp_path / "resumed", dataclasses.replace(
+      VAE_SETTINGS, num_steps=5))
+
+
+def test_checkpoint_of_another_configuration_is_an_input_error(tmp_path, components):
+  params = model.init_vae(components, np.random.default_rng(0))
+  state = training.init_state(params, VAE_SETTINGS, training.VAE_METRICS)
+  path = tmp_path / training.CHECKPOINT_NAME
+  training.save_checkpoint(path, state)
+  restored = training.restore_checkpoint(path, state)
+  jax.tree.map(np.testing.assert_array_equal, jax.tree.map(np.asarray, restored),
+               jax.tree.map(np.asarray, state))
+  longer = training.init_state(params, dataclasses.replace(VAE_SETTINGS, num_steps=9),
+                               training.VAE_METRICS)
+  with pytest.raises(InputError, match="checkpoint"):
+    training.restore_checkpoint(path, longer)
+
+
+@pytest.mark.parametrize("function", ["winograd", "upsample"])
+def test_fast_convolutions_take_the_convolution_gradient(function):
+  """Training differentiates the fast convolution rewrites through XLA's convolution."""
+  key_x, key_k, key_g = jax.random.split(jax.random.key(0), 3)
+  x = jax.random.normal(key_x, (2, 8, 8, 64))
+  kernel = jax.random.normal(key_k, (3, 3, 64, 64)) / 24
+  if function == "winograd":
+    fast = lambda x, kernel: layers.winograd_conv3x3(x, kernel, jnp.float32)
+    reference = lambda x, kernel: layers.xla_conv(x, kernel, 1, 1, jnp.float32)
+  else:
+    fast = lambda x, kernel: layers.upsample_conv(x, kernel, jnp.float32)
+    reference = lambda x, kernel: layers.xla_conv(layers.upsample_nearest(x), kernel, 1, 1,
+                                                  jnp.float32)
+  output, fast_vjp = jax.vjp(fast, x, kernel)
+  expected, reference_vjp = jax.vjp(reference, x, kernel)
+  np.testing.assert_allclose(output, expected, atol=1e-4)
+  cotangent = jax.random.normal(key_g, output.shape)
+  for got, want in zip(fast_vjp(cotangent), reference_vjp(cotangent)):
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)

@@ -1,0 +1,152 @@
+"""The image set update: resumable with nothing lost, one compilation, sharding-invariant."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from signerf_jax.diffusion import sampler
+from signerf_jax.editing import generation
+from signerf_jax.editing import sheet as sheet_lib
+from signerf_jax.editing import update
+
+from conftest import TINY_OPTIONS
+
+TILE = 16
+LAYOUT = sheet_lib.SheetLayout(tile_height=TILE, tile_width=TILE)
+NUM_VIEWS, VIEW_SIZE = 7, 24
+
+
+def make_views(count=NUM_VIEWS, seed=0, size=VIEW_SIZE) -> update.SlotViews:
+  """Random views with a disc mask each (empty for none: the caller chooses the indices)."""
+  rng = np.random.default_rng(seed)
+  rows, columns = np.mgrid[:size, :size] + 0.5
+  centres = rng.uniform(0.3 * size, 0.7 * size, (count, 2))
+  distance = np.hypot(rows[None] - centres[:, :1, None], columns[None] - centres[:, 1:, None])
+  masks = np.clip((0.25 * size - distance) / 2.0, 0.0, 1.0).astype(np.float32)
+  boxes = np.asarray([[0.0, 0.0, size, size]] * count, np.float32)
+  return update.SlotViews(images=rng.uniform(0, 1, (count, size, size, 3)).astype(np.float32),
+                          masks=masks, controls=rng.uniform(0, 1, (count, size, size)
+                                                            ).astype(np.float32), boxes=boxes)
+
+
+def make_sheet(seed=1):
+  rng = np.random.default_rng(seed)
+  height, width = LAYOUT.sheet_shape
+  return (rng.uniform(0, 1, (height, width, 3)).astype(np.float32),
+          rng.uniform(0, 1, (height, width, 1)).astype(np.float32))
+
+
+@pytest.fixture(scope="module")
+def generator(random_model):
+  return generation.load_generator(str(random_model), "", "", "a red cow", "", TINY_OPTIONS,
+                                   views_per_device=4)
+
+
+def run(generator, directory, views, **options):
+  sheet_rgb, sheet_control = make_sheet()
+  load = lambda indices: update.SlotViews(*(array[indices] for array in (
+      views.images, views.masks, views.controls, views.boxes)))
+  return update.run_update(generator, sheet_rgb, sheet_control, LAYOUT, np.arange(len(views.images)),
+                           load, directory, seed=5, progress=False, **options)
+
+
+def written(directory):
+  return {path.relative_to(directory).as_posix(): path.read_bytes()
+          for path in sorted(Path(directory).rglob("*.png"))}
+
+
+def test_an_interrupted_update_resumes_to_exactly_the_uninterrupted_images(generator, tmp_path):
+  views = make_views()
+  complete = run(generator, tmp_path / "complete", views)
+  assert complete == {"edited": NUM_VIEWS, "resumed": 0, "batches": 2, "batch_size": 4,
+                      "devices": 1}
+
+  def interrupt_after_three(view_index):
+    if len(list((tmp_path / "resumed" / "images").glob("*.png"))) == 3:
+      raise KeyboardInterrupt  # What Ctrl-C raises, between two views of a batch.
+
+  cache_size = sampler.sample._cache_size()  # pylint: disable=protected-access
+  with pytest.raises(KeyboardInterrupt):
+    run(generator, tmp_path / "resumed", views, on_view_written=interrupt_after_three)
+  assert len(written(tmp_path / "resumed")) == 2 * 3  # Three views: tile and image each.
+  resumed = run(generator, tmp_path / "resumed", views)
+  assert resumed["resumed"] == 3 and resumed["edited"] == NUM_VIEWS - 3
+  assert written(tmp_path / "resumed") == written(tmp_path / "complete")
+  # Every batch has the same shape: nothing compiled after the first run.
+  assert sampler.sample._cache_size() == cache_size  # pylint: disable=protected-access
+  # A finished update does no work at all.
+  assert run(generator, tmp_path / "resumed", views)["batches"] == 0
+
+
+def test_the_update_changes_only_masked_pixels_and_only_the_slot(generator):
+  views = make_views(3)
+  sheet_rgb, sheet_control = make_sheet()
+  keys = np.stack([generation.view_key(0, index) for index in range(3)])
+  edited, slots = update.update_batch(generator, sheet_rgb, sheet_control, LAYOUT, views, keys)
+  assert edited.shape == views.images.shape and slots.shape == (3, TILE, TILE, 3)
+  outside = views.masks == 0
+  np.testing.assert_array_equal(edited[outside], views.images[outside])
+  assert np.abs(edited - views.images)[views.masks == 1].mean() > 0.01
+  # A view's result depends on its own key only, not on its batch.
+  alone, _ = update.update_batch(generator, sheet_rgb, sheet_control, LAYOUT,
+                                 update.SlotViews(*(array[1:2] for array in (
+                                     views.images, views.masks, views.controls, views.boxes))),
+                                 keys[1:2])
+  np.testing.assert_allclose(alone[0], edited[1], atol=1e-6)
+
+
+def test_crops_cut_tiles_around_the_selection_and_paste_back_through_the_mask(generator):
+  views = make_views(2, size=48)
+  views = update.SlotViews(views.images, views.masks, views.controls,
+                           np.asarray([[8.0, 8.0, 24.0, 24.0], [12.0, 4.0, 24.0, 24.0]],
+                                      np.float32))
+  sheet_rgb, sheet_control = make_sheet()
+  keys = np.stack([generation.view_key(0, index) for index in range(2)])
+  edited, _ = update.update_batch(generator, sheet_rgb, sheet_control, LAYOUT, views, keys)
+  outside = views.masks == 0
+  np.testing.assert_array_equal(edited[outside], views.images[outside])
+
+
+# Runs in a process with four CPU devices: the batch of four views sharded one per device.
+SHARDED_UPDATE = textwrap.dedent("""
+    import sys
+    import jax
+    import numpy as np
+    model, tests, output = sys.argv[1:]
+    sys.path.insert(0, tests)
+    from signerf_jax.editing import generation, update
+    from conftest import TINY_OPTIONS
+    from test_update import LAYOUT, make_sheet, make_views
+    assert len(jax.devices()) == 4
+    generator = generation.load_generator(model, "", "", "a red cow", "", TINY_OPTIONS,
+                                          views_per_device=1)
+    views = make_views(4)
+    shards = len(generator.shard(views.images).sharding.device_set)
+    keys = np.stack([generation.view_key(3, index) for index in range(4)])
+    edited, _ = update.update_batch(generator, *make_sheet(), LAYOUT, views, keys)
+    np.savez(output, edited=edited, shards=shards)
+""")
+
+
+def test_the_update_sharded_over_four_devices_equals_the_one_device_update(generator,
+                                                                           random_model,
+                                                                           tmp_path):
+  output = tmp_path / "sharded.npz"
+  environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+                     JAX_PLATFORMS="cpu")
+  result = subprocess.run([sys.executable, "-c", SHARDED_UPDATE, str(random_model),
+                           str(Path(__file__).parent), str(output)], env=environment,
+                          capture_output=True, text=True, timeout=600, check=False)
+  assert result.returncode == 0, result.stderr[-3000:]
+  sharded = np.load(output)
+  assert int(sharded["shards"]) == 4
+  # Here: one device, the same four views in one batch.
+  assert len(generator.mesh.devices.ravel()) == 1 and generator.batch_size == 4
+  keys = np.stack([generation.view_key(3, index) for index in range(4)])
+  edited, _ = update.update_batch(generator, *make_sheet(), LAYOUT, make_views(4), keys)
+  np.testing.assert_allclose(sharded["edited"], edited, rtol=0, atol=1e-5)
