@@ -17,6 +17,7 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
+from typing import Any
 
 import gin
 
@@ -60,25 +61,31 @@ def proxy_mesh() -> str:
   return str(SPOT_COW) if SPOT_COW.is_file() else f"{PRIMITIVE_PREFIX}cow"
 
 
-def run(args: argparse.Namespace) -> int:
-  start = time.perf_counter()
-  out = Path(args.out)
-  gin_files = ["demo", *args.gin_file]
-  configs.parse_gin(gin_files, args.gin_param)
-  settings = DemoSettings()
-  scene_dir = out / "scene"
-  if not (scene_dir / synthetic.SCENE_FILE_NAME).is_file():
-    dataset, _ = synthetic.generate(scene_dir, seed=settings.scene_seed)
-    print(f"signerf demo: synthetic scene of {dataset.num_images} views "
-          f"({dataset.width}x{dataset.height} px) written to {scene_dir}", flush=True)
-  scene = files.read_json(scene_dir / synthetic.SCENE_FILE_NAME)
-  free_spot = scene["free_spot"]
-  model = str(Path(args.model).resolve()) if args.model else str(DEFAULT_MODEL_DIR)
+def model_directory(model: str | None) -> str:
+  """The given diffusers pipeline directory (absolute), or the shipped model's."""
+  model = str(Path(model).resolve()) if model else str(DEFAULT_MODEL_DIR)
   if not Path(model).is_dir():
-    raise InputError("the shipped diffusion model is not installed here; pass --model",
-                     model, "model")
-  prompt = args.prompt or settings.prompt
-  bindings = [
+    raise InputError("diffusion model directory not found (without --model: the shipped "
+                     "model, not installed here)", model, "model")
+  return model
+
+
+def ensure_scene(directory: Path, seed: int) -> dict[str, Any]:
+  """The scene.json of the synthetic scene in `directory`, generated first unless it is there
+  (with the gin-bound `synthetic_cameras` rig)."""
+  if not (directory / synthetic.SCENE_FILE_NAME).is_file():
+    dataset, _ = synthetic.generate(directory, seed=seed)
+    print(f"signerf demo: synthetic scene of {dataset.num_images} views "
+          f"({dataset.width}x{dataset.height} px) written to {directory}", flush=True)
+  return files.read_json(directory / synthetic.SCENE_FILE_NAME)
+
+
+def edit_bindings(scene_dir: Path, scene: dict[str, Any], settings: DemoSettings, prompt: str,
+                  model: str) -> list[str]:
+  """gin bindings of the demo's edit: the scene, prompt and model, and the cow proxy stood on
+  the scene's reserved free spot."""
+  free_spot = scene["free_spot"]
+  return [
       f"EditConfig.data = {str(scene_dir.resolve())!r}", f"EditConfig.prompt = {prompt!r}",
       f"EditConfig.model = {model!r}", "SelectionConfig.kind = 'proxy'",
       f"SelectionConfig.proxy = {proxy_mesh()!r}",
@@ -87,6 +94,19 @@ def run(args: argparse.Namespace) -> int:
       f"SelectionConfig.heading_degrees = {settings.heading_degrees!r}",
       f"SelectionConfig.up = {tuple(scene['up'])!r}",
   ]
+
+
+def run(args: argparse.Namespace) -> int:
+  start = time.perf_counter()
+  out = Path(args.out)
+  gin_files = ["demo", *args.gin_file]
+  configs.parse_gin(gin_files, args.gin_param)
+  settings = DemoSettings()
+  model = model_directory(args.model)
+  scene_dir = out / "scene"
+  scene = ensure_scene(scene_dir, settings.scene_seed)
+  prompt = args.prompt or settings.prompt
+  bindings = edit_bindings(scene_dir, scene, settings, prompt, model)
   configs.parse_gin(gin_files, bindings + list(args.gin_param))
   edit = commands.run_command("demo", out / "edit", progress=not args.quiet)
   evaluation = edit.directory.path("evaluation")

@@ -564,7 +564,11 @@ def evaluate_edit(run: EditRun) -> str:
                                  run.tile_boxes(dataset.cameras)[visible[chosen]])
     # Same prompt, settings and seed for every view, as the paper's comparison.
     keys = np.repeat(generation.seed_key(run.config.seed)[None], len(chosen), axis=0)
+    start = time.perf_counter()
     independent = evaluation.independent_edits(run.generator(1), run.layout, views, keys)
+    # Their cost against the sheet propagation's (the ablations' quality against time).
+    metrics["independent_edits"] = {"views": len(chosen),
+                                    "seconds": time.perf_counter() - start}
     metrics["consistency"] = evaluation.consistency_comparison(
         {"original": views.images, "sheet_propagated": edited_images[chosen],
          "independent": independent},

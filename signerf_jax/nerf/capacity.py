@@ -101,6 +101,10 @@ class Capacity:
     occupancy_resolution: occupancy grid cells per axis.
     samples_per_batch: network evaluations per training step after skipping empty space
       (occupancy sampler; rays that do not fit are left out of that step's loss).
+    sample_groups: the occupancy sampler fills the sample budget per group of consecutive rays
+      of a batch, samples_per_batch / sample_groups each (1: one budget for the whole batch).
+      Groups are independent, so data-parallel training splits them over devices; a multiple
+      of the device count lets each device evaluate only its own rays' samples.
     proposal_samples: intervals per ray for each proposal network (proposal sampler).
     samples_per_ray: intervals per ray for the radiance field (proposal sampler).
     proposal_finest_resolution, proposal_log2_table_size: the proposal networks' grids.
@@ -121,6 +125,7 @@ class Capacity:
   march_steps: int = 256
   occupancy_resolution: int = 64
   samples_per_batch: int = 65536
+  sample_groups: int = 1
   proposal_samples: tuple[int, ...] = (64, 32)
   samples_per_ray: int = 24
   proposal_finest_resolution: int = 128
@@ -148,6 +153,7 @@ def derive_capacity(scene: SceneInfo,
                     steps_per_finest_cell: float = 1.0,
                     rays_per_batch: int | None = None,
                     samples_per_batch: int = 65536,
+                    sample_groups: int = 8,
                     appearance_embedding: bool | None = None,
                     overrides: Mapping[str, Any] | None = None) -> Capacity:
   """The capacity a scene needs (gin knobs tune the rules; `overrides` pins any field).
@@ -166,6 +172,8 @@ def derive_capacity(scene: SceneInfo,
       pruned; rays that overflow the budget only cost their grid lookups); with proposals,
       enough rays for `samples_per_batch` radiance-field samples.
     samples_per_batch: radiance-field samples per training step.
+    sample_groups: independent sample budgets per batch (occupancy sampler); 8 lets 1, 2, 4
+      or 8 devices share training evenly (`Capacity.sample_groups`).
     appearance_embedding: None = only for real captures (forward-facing / unbounded scenes).
     overrides: Capacity fields to force, e.g. a fixed large configuration for comparison.
   """
@@ -207,6 +215,7 @@ def derive_capacity(scene: SceneInfo,
       march_steps=march_steps,
       occupancy_resolution=occupancy_resolution,
       samples_per_batch=samples_per_batch,
+      sample_groups=sample_groups,
       proposal_samples=(2 * samples_per_ray, samples_per_ray),
       samples_per_ray=samples_per_ray,
       proposal_finest_resolution=min(finest, 256),

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax.camera import Rays
+from signerf_jax.errors import InputError
 from signerf_jax.nerf import occupancy, sampling, volume
 from signerf_jax.nerf.capacity import Capacity, SceneInfo
 from signerf_jax.nerf.encoding import grid_layout
@@ -183,23 +184,38 @@ def _render_occupancy(model, variables, rays, key, training):
   num_rays, num_steps = mask.shape
   appearance = _appearance(model, rays, training)
 
-  def evaluate(indices, valid):
-    ray_index = jnp.minimum(indices, mask.size - 1) // num_steps
-    points = unit_points.reshape(-1, 3)[jnp.minimum(indices, mask.size - 1)]
-    density, rgb = model.field.apply({"params": variables["params"]["field"]}, points,
-                                     rays.directions[ray_index], appearance[ray_index])
-    return jnp.where(valid, density, 0.0), rgb
+  def evaluate(mask, unit_points, directions, appearance, indices):
+    """The field at flat sample `indices` of `mask` [r, N] (index mask.size: padding)."""
+    safe = jnp.minimum(indices, mask.size - 1)
+    ray_index = safe // mask.shape[1]
+    density, rgb = model.field.apply({"params": variables["params"]["field"]},
+                                     unit_points.reshape(-1, 3)[safe], directions[ray_index],
+                                     appearance[ray_index])
+    return jnp.where(indices < mask.size, density, 0.0), rgb
 
   def scatter(target, indices, values):
     return target.at[indices].set(values, mode="drop")
 
-  densities = jnp.zeros(mask.size, jnp.float32)
-  rgbs = jnp.zeros((mask.size, 3), jnp.float32)
   budget = capacity.samples_per_batch
   if training:
-    indices, valid, ray_complete = occupancy.compact(mask, budget)
-    density, rgb = evaluate(indices, valid)
-    densities, rgbs = scatter(densities, indices, density), scatter(rgbs, indices, rgb)
+    groups = capacity.sample_groups
+    if num_rays % groups or budget % groups:
+      raise InputError(f"{groups} groups do not split {num_rays} rays and {budget} samples "
+                       "evenly", field="Capacity.sample_groups")
+
+    def render_group(mask, unit_points, directions, appearance):
+      indices, valid, complete = occupancy.compact(mask, budget // groups)
+      density, rgb = evaluate(mask, unit_points, directions, appearance, indices)
+      return (scatter(jnp.zeros(mask.size, jnp.float32), indices, density),
+              scatter(jnp.zeros((mask.size, 3), jnp.float32), indices, rgb), complete,
+              jnp.sum(valid))
+
+    # Each group of consecutive rays fills its own share of the sample budget: groups work
+    # independently, so with the rays split over devices each device evaluates only its own.
+    grouped = lambda array: array.reshape((groups, -1) + array.shape[1:])
+    densities, rgbs, ray_complete, samples = jax.vmap(render_group)(
+        grouped(mask), grouped(unit_points), grouped(rays.directions), grouped(appearance))
+    ray_complete, samples = ray_complete.reshape(-1), jnp.sum(samples)
   else:
     # Evaluate every occupied sample, one fixed-size piece at a time (forward only).
     padded = int(np.ceil(mask.size / budget)) * budget
@@ -209,19 +225,19 @@ def _render_occupancy(model, variables, rays, key, training):
     def body(state):
       piece, densities, rgbs = state
       indices = jax.lax.dynamic_slice(all_indices, (piece * budget,), (budget,))
-      density, rgb = evaluate(indices, indices < mask.size)
+      density, rgb = evaluate(mask, unit_points, rays.directions, appearance, indices)
       return piece + 1, scatter(densities, indices, density), scatter(rgbs, indices, rgb)
 
-    _, densities, rgbs = jax.lax.while_loop(lambda state: state[0] * budget < count, body,
-                                            (jnp.int32(0), densities, rgbs))
-    ray_complete = jnp.ones(rays.shape, bool)
+    _, densities, rgbs = jax.lax.while_loop(
+        lambda state: state[0] * budget < count, body,
+        (jnp.int32(0), jnp.zeros(mask.size, jnp.float32), jnp.zeros((mask.size, 3), jnp.float32)))
+    ray_complete, samples = jnp.ones(rays.shape, bool), count
   edges = _finish_edges(model, edges)
   outputs = volume.volume_render(densities.reshape(num_rays, num_steps),
                                  rgbs.reshape(num_rays, num_steps, 3), edges,
                                  rays.cos_to_optical_axis, model.background)
   outputs["ray_complete"] = ray_complete
-  return outputs, {"proposals": [], "edges": edges,
-                   "samples_evaluated": jnp.minimum(jnp.sum(mask), budget)}
+  return outputs, {"proposals": [], "edges": edges, "samples_evaluated": samples}
 
 
 def _render_proposal(model, variables, rays, key, training):

@@ -6,6 +6,12 @@ A run directory holds:
   checkpoint.msgpack  the latest TrainState plus step / seconds trained
 A resumed run continues exactly as an uninterrupted one: each step's randomness is
 `fold_in(state.key, state.step)`, so nothing depends on how the run was split.
+
+Training is data-parallel over a device mesh (default: every device, `parallel.device_mesh`):
+each step's ray batch is split over the devices, the state and the images are replicated, and
+GSPMD all-reduces the gradients. The batch is the same for any device count, and so are the
+results (to float tolerance). With the occupancy sampler, each device evaluates only its own
+rays' samples when the device count divides `Capacity.sample_groups`.
 """
 
 from __future__ import annotations
@@ -24,8 +30,9 @@ import numpy as np
 import optax
 import tqdm
 from flax import struct
+from jax.sharding import Mesh
 
-from signerf_jax import camera, configs, files
+from signerf_jax import camera, configs, files, parallel
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import checkpoint, losses
@@ -145,8 +152,11 @@ def init_state(model: nerf_model.NerfModel, config: TrainConfig, init_variables=
 
 
 def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainState,
-               data: TrainingData) -> tuple[TrainState, dict[str, jax.Array]]:
+               data: TrainingData, mesh: Mesh | None = None
+               ) -> tuple[TrainState, dict[str, jax.Array]]:
   """One optimisation step (pure; `make_train_step` jits it with the state donated).
+
+  With a `mesh`, the rays are split over its devices (the batch must divide evenly).
 
   Returns:
     the new state and scalar statistics: loss, psnr (of the batch), complete_fraction (rays
@@ -157,6 +167,9 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
                                                   model.capacity.rays_per_batch)
   target = data.images[index, row, column]
   pixel_weight = data.pixel_weights[index, row, column]
+  if mesh is not None:
+    rays, target, pixel_weight = jax.lax.with_sharding_constraint(
+        (rays, target, pixel_weight), parallel.batch_sharded(mesh))
 
   def loss_fn(params):
     outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, rays,
@@ -195,19 +208,26 @@ def occupancy_step(model: nerf_model.NerfModel, config: TrainConfig, state: Trai
 
 
 @functools.lru_cache(maxsize=8)
-def _jitted_steps(model: nerf_model.NerfModel, config: TrainConfig):
-  """The jitted step and occupancy refresh, shared by every Trainer of one (model, config), so
-  that resuming or restarting a run in the same process compiles nothing new."""
-  step_fn = jax.jit(lambda state, data: train_step(model, config, state, data), donate_argnums=0)
-  occupancy_fn = jax.jit(lambda state: occupancy_step(model, config, state), donate_argnums=0)
+def _jitted_steps(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh):
+  """The jitted step and occupancy refresh, shared by every Trainer of one (model, config,
+  mesh), so that resuming or restarting a run in the same process compiles nothing new.
+
+  State and data are replicated over the mesh, in and out.
+  """
+  replicated = parallel.replicated(mesh)
+  step_fn = jax.jit(lambda state, data: train_step(model, config, state, data, mesh),
+                    donate_argnums=0, in_shardings=replicated, out_shardings=replicated)
+  occupancy_fn = jax.jit(lambda state: occupancy_step(model, config, state), donate_argnums=0,
+                         in_shardings=replicated, out_shardings=replicated)
   return step_fn, occupancy_fn
 
 
-def make_train_step(model: nerf_model.NerfModel, config: TrainConfig
+def make_train_step(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh
                     ) -> Callable[[TrainState, TrainingData], tuple[TrainState, dict]]:
-  """One training step for this model and config: the occupancy refresh when it is due, then
-  `train_step`; both jitted with the state donated."""
-  step_fn, occupancy_fn = _jitted_steps(model, config)
+  """One training step for this model and config, data-parallel over `mesh`: the occupancy
+  refresh when it is due, then `train_step`; both jitted with the state donated."""
+  parallel.check_divisible(model.capacity.rays_per_batch, mesh, "Capacity.rays_per_batch")
+  step_fn, occupancy_fn = _jitted_steps(model, config, mesh)
   if model.capacity.sampler != "occupancy":
     return step_fn
 
@@ -225,7 +245,7 @@ class Trainer:
   """A training run in memory: the model, its jitted step and the state, advanced in bursts.
 
   `train` below is the usual entry point; benchmarks use a Trainer directly to evaluate between
-  bursts without recompiling.
+  bursts without recompiling. `mesh` is the devices the steps run on (None: all of them).
   """
 
   model: nerf_model.NerfModel
@@ -235,9 +255,13 @@ class Trainer:
   seconds_trained: float = 0.0
   samples_trained: float = 0.0
   last_statistics: dict[str, float] = dataclasses.field(default_factory=dict)
+  mesh: Mesh | None = None
 
   def __post_init__(self):
-    self._step_fn = make_train_step(self.model, self.config)
+    self.mesh = parallel.device_mesh() if self.mesh is None else self.mesh
+    self._step_fn = make_train_step(self.model, self.config, self.mesh)
+    # Placed once: the step would otherwise copy the images to every device at each call.
+    self.data, self.state = parallel.replicate((self.data, self.state), self.mesh)
 
   @property
   def step(self) -> int:
@@ -317,12 +341,13 @@ def build_model(dataset: Dataset, capacity: Capacity | None = None) -> nerf_mode
 
 def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
                  config: TrainConfig | None = None, init_variables=None,
-                 pixel_weights=None) -> Trainer:
-  """A Trainer at step 0 (fresh, or fine-tuning from `init_variables`)."""
+                 pixel_weights=None, mesh: Mesh | None = None) -> Trainer:
+  """A Trainer at step 0 (fresh, or fine-tuning from `init_variables`), data-parallel over
+  `mesh` (default: all devices)."""
   config = config or TrainConfig()
   model = model or build_model(dataset)
   return Trainer(model, config, TrainingData.from_dataset(dataset, pixel_weights),
-                 init_state(model, config, init_variables))
+                 init_state(model, config, init_variables), mesh=mesh)
 
 
 def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
@@ -360,7 +385,9 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
   run_dir.mkdir(parents=True, exist_ok=True)
   configs.save_gin_config(run_dir)
   if checkpoint.has_checkpoint(run_dir):
-    trainer.state, metadata = checkpoint.restore(run_dir, trainer.state)
+    state, metadata = checkpoint.restore(run_dir, trainer.state)
+    # Placed like the fresh state: host arrays would make the first step compile again.
+    trainer.state = parallel.replicate(state, trainer.mesh)
     trainer.seconds_trained = float(metadata.get("seconds_trained", 0.0))
     trainer.samples_trained = float(metadata.get("samples_trained", 0.0))
   else:

@@ -1,0 +1,99 @@
+"""Line charts for the experiments' PNG plots, drawn with OpenCV (the project's image library).
+
+    panel = line_chart("NeRF training", [Series("measured", [1, 2, 4], [3.1, 5.9, 11.0])],
+                       x_label="devices", y_label="rays / s")
+    write_panels(path, [panel, ...])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from signerf_jax import files
+
+# BGR, matplotlib's first colours.
+COLOURS = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148))
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+BLACK, GRID = (0, 0, 0), (220, 220, 220)
+
+
+@dataclasses.dataclass(frozen=True)
+class Series:
+  """One line: points (x, y) in data units, drawn dashed (thin, no markers) if `dashed`."""
+
+  label: str
+  x: Sequence[float]
+  y: Sequence[float]
+  dashed: bool = False
+
+
+def _text(canvas, text: str, origin, colour=BLACK, scale: float = 0.45) -> None:
+  cv2.putText(canvas, text, (int(origin[0]), int(origin[1])), FONT, scale, colour, 1, cv2.LINE_AA)
+
+
+def _ticks(low: float, high: float, count: int = 5) -> np.ndarray:
+  """About `count` round tick values covering [low, high]."""
+  step = (high - low) / count
+  magnitude = 10.0**np.floor(np.log10(step))
+  step = min((factor * magnitude for factor in (1, 2, 5, 10) if factor * magnitude >= step))
+  return np.arange(np.floor(low / step) * step, high + 0.5 * step, step)
+
+
+def line_chart(title: str, series: Sequence[Series], x_label: str, y_label: str,
+               x_ticks: Sequence[float] | None = None, width: int = 460, height: int = 340,
+               y_from_zero: bool = True) -> np.ndarray:
+  """A chart of `series` with grid lines and a legend; [height, width, 3] uint8 BGR.
+
+  Args:
+    x_ticks: where the vertical grid lines and x labels go (default: round values).
+    y_from_zero: the y axis starts at 0 (else at the lowest value).
+  """
+  canvas = np.full((height, width, 3), 255, np.uint8)
+  left, right, top, bottom = 60, width - 15, 45, height - 45
+  xs = np.concatenate([np.asarray(line.x, float) for line in series])
+  ys = np.concatenate([np.asarray(line.y, float) for line in series])
+  x_ticks = _ticks(xs.min(), xs.max()) if x_ticks is None else np.asarray(x_ticks, float)
+  y_ticks = _ticks(0.0 if y_from_zero else ys.min(), ys.max())
+  x_low, x_high = min(x_ticks[0], xs.min()), max(x_ticks[-1], xs.max())
+  y_low, y_high = y_ticks[0], max(y_ticks[-1], ys.max())
+  to_pixel = lambda x, y: (int(round(left + (right - left) * (x - x_low) / max(x_high - x_low,
+                                                                               1e-12))),
+                           int(round(bottom - (bottom - top) * (y - y_low) / max(y_high - y_low,
+                                                                                 1e-12))))
+  for value in y_ticks:
+    y = to_pixel(x_low, value)[1]
+    cv2.line(canvas, (left, y), (right, y), GRID, 1)
+    _text(canvas, f"{value:g}", (5, y + 4))
+  for value in x_ticks:
+    x = to_pixel(value, y_low)[0]
+    cv2.line(canvas, (x, top), (x, bottom), GRID, 1)
+    _text(canvas, f"{value:g}", (x - 6, bottom + 16))
+  _text(canvas, title, (10, 18), scale=0.55)
+  _text(canvas, x_label, ((left + right) // 2 - 4 * len(x_label), height - 8))
+  _text(canvas, y_label, (5, top - 12))
+  for index, line in enumerate(series):
+    colour = COLOURS[index % len(COLOURS)]
+    pixels = [to_pixel(x, y) for x, y in zip(line.x, line.y)]
+    for start, end in zip(pixels[:-1], pixels[1:]):
+      if line.dashed:
+        for fraction in np.arange(0, 1, 0.1):
+          a = np.add(start, np.subtract(end, start) * fraction).astype(int)
+          b = np.add(start, np.subtract(end, start) * (fraction + 0.05)).astype(int)
+          cv2.line(canvas, tuple(map(int, a)), tuple(map(int, b)), colour, 1, cv2.LINE_AA)
+      else:
+        cv2.line(canvas, start, end, colour, 2, cv2.LINE_AA)
+    if not line.dashed:
+      for pixel in pixels:
+        cv2.circle(canvas, pixel, 4, colour, -1, cv2.LINE_AA)
+    _text(canvas, line.label, (left + 10, top + 16 + 18 * index), colour)
+  return canvas
+
+
+def write_panels(path: str | Path, panels: Sequence[np.ndarray]) -> None:
+  """Writes charts side by side (same height) as one PNG, atomically."""
+  files.write_image(path, np.concatenate(panels, axis=1)[..., ::-1].astype(np.float32) / 255)
