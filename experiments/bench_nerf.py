@@ -19,15 +19,15 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-import cv2
 import gin
 import jax
-import numpy as np
 
 from signerf_jax import configs, files
 from signerf_jax.data import load_dataset, synthetic
 from signerf_jax.nerf import evaluate, train
 from signerf_jax.nerf.model import NerfModel
+
+import plotting  # experiments/plotting.py (this script's directory is on sys.path)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
@@ -128,47 +128,18 @@ def run_benchmark(scenes: Sequence[str] = ("synthetic", "lego", "fern"),
   return result
 
 
-def plot(result: dict[str, Any], path: Path, width: int = 900, height: int = 560) -> None:
-  """PSNR against training seconds, one line per scene and per capacity of the comparison
-  (drawn with OpenCV, the project's image library)."""
+def plot(result: dict[str, Any], path: Path) -> None:
+  """PSNR against training seconds, one line per scene and per capacity of the comparison."""
   lines = [(name, scene["curve"]) for name, scene in result["scenes"].items()]
   comparison = result.get("capacity_comparison")
   if comparison:
     for label in ("derived", "fixed_large"):
       lines.append((f"{comparison['scene']} ({label} capacity)", comparison[label]["curve"]))
-  points = [(p["seconds"], p["psnr"]) for _, curve in lines for p in curve]
-  max_seconds = max(60.0, max(x for x, _ in points) * 1.05)
-  low = np.floor(min(y for _, y in points) / 5) * 5
-  high = np.ceil(max(y for _, y in points) / 5) * 5 + 1e-6
-  left, right, top, bottom = 70, width - 20, 20, height - 60
-  to_pixel = lambda x, y: (int(left + (right - left) * x / max_seconds),
-                           int(bottom - (bottom - top) * (y - low) / (high - low)))
-  canvas = np.full((height, width, 3), 255, np.uint8)
-  font, grey = cv2.FONT_HERSHEY_SIMPLEX, (200, 200, 200)
-  for value in np.arange(low, high, 5):
-    y = to_pixel(0, value)[1]
-    cv2.line(canvas, (left, y), (right, y), grey, 1)
-    cv2.putText(canvas, f"{value:.0f}", (20, y + 5), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-  for value in np.linspace(0, max_seconds, 7):
-    x = to_pixel(value, low)[0]
-    cv2.line(canvas, (x, top), (x, bottom), grey, 1)
-    cv2.putText(canvas, f"{value:.0f}", (x - 12, bottom + 20), font, 0.5, (0, 0, 0), 1,
-                cv2.LINE_AA)
-  cv2.putText(canvas, "training seconds on this machine", (width // 2 - 150, height - 12), font,
-              0.55, (0, 0, 0), 1, cv2.LINE_AA)
-  cv2.putText(canvas, "PSNR (dB)", (5, 14), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-  colours = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148)]
-  for index, (label, curve) in enumerate(lines):
-    colour = colours[index % len(colours)]
-    pixels = [to_pixel(p["seconds"], p["psnr"]) for p in curve]
-    for start, end in zip(pixels[:-1], pixels[1:]):
-      cv2.line(canvas, start, end, colour, 2, cv2.LINE_AA)
-    for pixel in pixels:
-      cv2.circle(canvas, pixel, 4, colour, -1, cv2.LINE_AA)
-    # The legend sits bottom right, below the curves (PSNR rises with time).
-    cv2.putText(canvas, label, (right - 300, bottom - 15 - 20 * (len(lines) - 1 - index)), font,
-                0.5, colour, 1, cv2.LINE_AA)
-  files.write_image(path, canvas[..., ::-1].astype(np.float32) / 255)
+  series = [plotting.Series(label, [point["seconds"] for point in curve],
+                            [point["psnr"] for point in curve]) for label, curve in lines]
+  plotting.write_panels(path, [plotting.line_chart(
+      "NeRF: speed against error", series, "training seconds on this machine", "PSNR (dB)",
+      width=900, height=560, y_from_zero=False)])
 
 
 def main() -> None:

@@ -155,7 +155,7 @@ def measure_update(config: ScalingConfig, model: str, dataset, devices
   started = time.perf_counter()
   generator = generation.load_generator(model, "", "", config.prompt, "",
                                         pipeline_lib.GenerationOptions(),
-                                        config.views_per_device, generation.device_mesh(devices))
+                                        config.views_per_device, parallel.device_mesh(devices, generation.MESH_AXIS))
   tile = generation.native_tile_size(model)
   layout = sheet_lib.SheetLayout(tile_height=tile, tile_width=tile)
   views, sheet_rgb, sheet_control = update_inputs(dataset, layout, config.update_views)

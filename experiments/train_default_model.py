@@ -24,13 +24,14 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import gin
 import numpy as np
 from flax import traverse_util
 
 from signerf_jax import configs, files
 from signerf_jax.default_model import export, model, stages, training, training_data
+
+import plotting  # experiments/plotting.py (this script's directory is on sys.path)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHIPPED_WEIGHTS = Path(model.__file__).resolve().parent / "weights"
@@ -62,39 +63,24 @@ def verify_export(directory: Path, params: dict, dtype) -> dict[str, float]:
   return differences
 
 
-def plot_curves(histories: dict, path: Path, panel_width: int = 420, height: int = 320) -> None:
-  """One panel per stage: log10 of windowed losses against steps (drawn with OpenCV)."""
+def plot_curves(histories: dict, path: Path) -> None:
+  """One panel per stage: log10 of the windowed losses against steps."""
   panels = []
-  colours = [(180, 119, 31), (14, 127, 255), (44, 160, 44)]
-  font = cv2.FONT_HERSHEY_SIMPLEX
   for stage in stages.STAGES:
-    canvas = np.full((height, panel_width, 3), 255, np.uint8)
-    cv2.putText(canvas, stage, (10, 18), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
     history = histories.get(stage, {})
-    curves = [(name, np.asarray(window_means(history[name], CURVE_WINDOW)))
-              for name in ("loss",) + PLOTTED[stage] if name in history]
-    curves = [(name, values) for name, values in curves if len(values) > 1]
-    if curves:
-      logs = [np.log10(np.maximum(values, 1e-8)) for _, values in curves]
-      low, high = min(v.min() for v in logs), max(v.max() for v in logs) + 1e-6
-      left, right, top, bottom = 50, panel_width - 10, 30, height - 30
-      steps = len(history["loss"])
-      for tick in np.arange(np.floor(low), np.ceil(high) + 1):
-        y = int(bottom - (bottom - top) * (tick - low) / (high - low))
-        if top <= y <= bottom:
-          cv2.line(canvas, (left, y), (right, y), (220, 220, 220), 1)
-          cv2.putText(canvas, f"1e{tick:.0f}", (5, y + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-      cv2.putText(canvas, f"{steps} steps", (right - 90, height - 8), font, 0.45, (0, 0, 0), 1,
-                  cv2.LINE_AA)
-      for index, ((name, _), values) in enumerate(zip(curves, logs)):
-        x = left + (right - left) * np.arange(len(values)) / max(len(values) - 1, 1)
-        y = bottom - (bottom - top) * (values - low) / (high - low)
-        points = np.stack([x, y], -1).astype(np.int32)
-        cv2.polylines(canvas, [points], False, colours[index % 3], 1, cv2.LINE_AA)
-        cv2.putText(canvas, name, (right - 140, top + 14 + 16 * index), font, 0.45,
-                    colours[index % 3], 1, cv2.LINE_AA)
-    panels.append(canvas)
-  files.write_image(path, np.concatenate(panels, 1)[..., ::-1].astype(np.float32) / 255)
+    series = []
+    for name in ("loss",) + PLOTTED[stage]:
+      means = np.asarray(window_means(history[name], CURVE_WINDOW)) if name in history else []
+      if len(means) > 1:
+        steps = CURVE_WINDOW * (np.arange(len(means)) + 1)
+        series.append(plotting.Series(name, steps, np.log10(np.maximum(means, 1e-8)),
+                                      dashed=True))
+    if series:
+      panels.append(plotting.line_chart(stage, series, "steps", "log10 loss", width=420,
+                                        height=320, y_from_zero=False))
+    else:
+      panels.append(np.full((320, 420, 3), 255, np.uint8))
+  plotting.write_panels(path, panels)
 
 
 def main(argv=None) -> int:

@@ -50,8 +50,8 @@ import gin
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec
 
+from signerf_jax import parallel
 from signerf_jax.default_model import appearance
 from signerf_jax.default_model import batches
 from signerf_jax.default_model import captions as captions_lib
@@ -383,7 +383,6 @@ def generate_with_captions(generator: Generator, captions: Sequence[str], image,
   """
   with_channels = lambda array: np.asarray(array, np.float32).reshape(np.shape(image)[:3] + (-1,))
   image, mask, control = with_channels(image), with_channels(mask), with_channels(control)
-  replicated = NamedSharding(generator.mesh, PartitionSpec())
   outputs = []
   for start in range(0, len(captions), generator.batch_size):
     part = slice(start, start + generator.batch_size)
@@ -391,7 +390,8 @@ def generate_with_captions(generator: Generator, captions: Sequence[str], image,
     count = len(texts)
     # Always batch_size prompt rows (the last repeated): one prompt shape, one compiled program.
     texts += texts[-1:] * (generator.batch_size - count)
-    prompt = jax.device_put(pipeline_lib.encode_prompts(generator.pipeline, texts), replicated)
+    prompt = parallel.replicate(pipeline_lib.encode_prompts(generator.pipeline, texts),
+                                generator.mesh)
     outputs.append(timer.time(task, image.shape[1:], generator.batch_size,
                               dataclasses.replace(generator, prompt=prompt),
                               image[part], mask[part], control[part], keys[part]))

@@ -177,6 +177,7 @@ class FinetuneTrainer(train.Trainer):
   editable_cells: jax.Array | None = None
 
   def __post_init__(self):
+    super().__post_init__()  # The device mesh and the replicated data and state.
     step_fn, occupancy_fn = _jitted_steps(self.model, self.config, self.loss_settings)
     config, uses_occupancy = self.config, self.model.capacity.sampler == "occupancy"
 
@@ -236,9 +237,7 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
                             editable_cells=None if edited_bounds is None
                             else region_cells(model, edited_bounds))
   if checkpoint.has_checkpoint(run_dir):
-    trainer.state, metadata = checkpoint.restore(run_dir, trainer.state)
-    trainer.seconds_trained = float(metadata.get("seconds_trained", 0.0))
-    trainer.samples_trained = float(metadata.get("samples_trained", 0.0))
+    trainer.restore(run_dir)
   else:
     train.write_model_file(run_dir, model, dataset, data_options)
   trainer.run(run_dir=run_dir, progress=progress)

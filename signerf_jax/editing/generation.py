@@ -29,9 +29,9 @@ from typing import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 
-from signerf_jax import files
+from signerf_jax import files, parallel
 from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
@@ -48,12 +48,6 @@ def seed_key(seed: int) -> np.ndarray:
 def view_key(seed: int, view_index: int) -> np.ndarray:
   """[2] uint32 key data of dataset view `view_index` in the update with edit seed `seed`."""
   return np.asarray(jax.random.fold_in(jax.random.PRNGKey(seed), view_index))
-
-
-def device_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
-  """A 1-D mesh over `devices` (default: all) with the axis "views"."""
-  devices = list(jax.devices() if devices is None else devices)
-  return Mesh(np.asarray(devices), (MESH_AXIS,))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -91,7 +85,7 @@ class Generator:
     padding = self.batch_size - len(array)
     if padding:
       array = jnp.concatenate([array, jnp.repeat(array[-1:], padding, axis=0)])
-    return jax.device_put(array, NamedSharding(self.mesh, PartitionSpec(MESH_AXIS)))
+    return jax.device_put(array, parallel.batch_sharded(self.mesh))
 
   def __call__(self, image, mask, control, keys) -> np.ndarray:
     """Inpaints up to `batch_size` samples in one compiled, sharded call.
@@ -124,14 +118,12 @@ def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str
   if pipeline.models.controlnet is None:
     raise InputError("the pipeline has no ControlNet: SIGNeRF conditions on depth (pass "
                      "--controlnet)", model, "controlnet")
-  mesh = device_mesh() if mesh is None else mesh
-  replicated = NamedSharding(mesh, PartitionSpec())
-  pipeline = dataclasses.replace(pipeline,
-                                 models=jax.device_put(pipeline.models, replicated))
+  mesh = parallel.device_mesh(axis_name=MESH_AXIS) if mesh is None else mesh
+  pipeline = dataclasses.replace(pipeline, models=parallel.replicate(pipeline.models, mesh))
   # With the unconditional embeddings too, so that options with or without guidance can share
   # this generator (`dataclasses.replace(generator, options=...)`).
   embeddings = pipeline_lib.encode_prompts(pipeline, [prompt], negative_prompt or None)
-  return Generator(pipeline, jax.device_put(embeddings, replicated), options, mesh,
+  return Generator(pipeline, parallel.replicate(embeddings, mesh), options, mesh,
                    views_per_device)
 
 

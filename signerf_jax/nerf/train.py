@@ -310,6 +310,14 @@ class Trainer:
                                           "seconds_trained": self.seconds_trained,
                                           "samples_trained": self.samples_trained})
 
+  def restore(self, run_dir: str | os.PathLike) -> None:
+    """Continues from the checkpoint in `run_dir` (state, seconds and samples trained)."""
+    state, metadata = checkpoint.restore(run_dir, self.state)
+    # Placed like the fresh state: host arrays would make the first step compile again.
+    self.state = parallel.replicate(state, self.mesh)
+    self.seconds_trained = float(metadata.get("seconds_trained", 0.0))
+    self.samples_trained = float(metadata.get("samples_trained", 0.0))
+
 
 def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
                      dataset: Dataset, data_options: dict[str, Any] | None = None) -> None:
@@ -385,11 +393,7 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
   run_dir.mkdir(parents=True, exist_ok=True)
   configs.save_gin_config(run_dir)
   if checkpoint.has_checkpoint(run_dir):
-    state, metadata = checkpoint.restore(run_dir, trainer.state)
-    # Placed like the fresh state: host arrays would make the first step compile again.
-    trainer.state = parallel.replicate(state, trainer.mesh)
-    trainer.seconds_trained = float(metadata.get("seconds_trained", 0.0))
-    trainer.samples_trained = float(metadata.get("samples_trained", 0.0))
+    trainer.restore(run_dir)
   else:
     write_model_file(run_dir, trainer.model, dataset, data_options)
   trainer.run(run_dir=run_dir, progress=progress)

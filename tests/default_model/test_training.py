@@ -77,7 +77,7 @@ def _loss_goes_down(loss_fn, params, frozen, batch, settings, steps=3):
   evaluate = jax.jit(lambda params: loss_fn(params, frozen, batch, jax.random.key(5))[0])
   state = training.init_state(params, settings, ("loss", "gradient_norm") + tuple(
       name for name in training.DIFFUSION_METRICS + training.VAE_METRICS
-      if name in loss_fn(params, frozen, batch, jax.random.key(0))[1]))
+      if name in jax.eval_shape(loss_fn, params, frozen, batch, jax.random.key(0))[1]))
   train_step = training.make_train_step(loss_fn, settings)
   before = float(evaluate(state.params))
   for _ in range(steps):
