@@ -27,6 +27,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 import safetensors.numpy
 from flax import traverse_util
@@ -142,3 +143,12 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint:
       text_encoder=clip_text.load_text_encoder(directory / "text_encoder"),
       tokenizer=tokenizer_lib.load_tokenizer(directory / "tokenizer"),
       scheduler=schedulers.load_scheduler_config(directory / "scheduler"))
+
+
+def initial_params(directory: str | os.PathLike) -> dict[str, Any]:
+  """{"vae", "unet", "text_encoder", "controlnet"}: an exported model's parameters in float32,
+  to continue training from (`stages.train(..., initial=...)`)."""
+  loaded = load_checkpoint(directory)
+  params = {"vae": loaded.vae_params, "unet": loaded.unet_params,
+            "text_encoder": loaded.text_encoder.params, "controlnet": loaded.controlnet_params}
+  return jax.tree.map(lambda leaf: np.asarray(leaf, np.float32), params)

@@ -14,6 +14,10 @@ deadline, so training spans as many runs as it needs. What each stage trains and
 Between the VAE and the UNet stage the VAE's latent scaling factor is measured (1 / std of the
 latents of a fixed set of training views), so the diffusion model sees unit-variance latents;
 it is part of the exported VAE config.
+
+A run can also start every stage from an exported model (`initial`, e.g. the shipped weights)
+instead of random parameters: how training continues on a machine that has the weights but not
+the run's checkpoints (give the stages to skip zero steps).
 """
 
 from __future__ import annotations
@@ -21,17 +25,19 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import gin
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import traverse_util
 
 from signerf_jax.default_model import model as model_lib
 from signerf_jax.default_model import training
 from signerf_jax.default_model import training_data
 from signerf_jax.diffusion import schedulers
+from signerf_jax.errors import InputError
 
 STAGES = ("vae", "unet", "controlnet")
 SCALING_SEED = 12345  # The views that set the latent scaling factor (fixed, not the run's seed).
@@ -86,7 +92,8 @@ def latent_scaling_factor(components: model_lib.Components, vae_params, data, vi
   vae = components.vae
   encode = jax.jit(lambda images: vae.apply({"params": vae_params}, 2.0 * images - 1.0,
                                             method=vae.encode).mean)
-  means = np.concatenate([np.asarray(encode(chunk)) for chunk in np.split(images, views // 32)])
+  means = np.concatenate([np.asarray(encode(images[start:start + 32]))
+                          for start in range(0, views, 32)])
   return float(1.0 / means.std())
 
 
@@ -97,7 +104,8 @@ def _history(state: training.TrainState) -> dict[str, np.ndarray]:
 
 def train(run_directory: str | os.PathLike, data: training_data.SplitData,
           architecture: model_lib.Architecture, budget: training.RunBudget,
-          plan: TrainingPlan | None = None) -> TrainedModel:
+          plan: TrainingPlan | None = None, initial: dict[str, Any] | None = None
+          ) -> TrainedModel:
   """Runs (or resumes) the stages in order until all are done or the budget's deadline.
 
   Args:
@@ -106,12 +114,27 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
     architecture: the model's sizes (its vae_scaling_factor is replaced by the measured one).
     budget: deadline, checkpoint interval, progress display.
     plan: stage settings (default: the gin-bound `TrainingPlan`).
+    initial: {"vae", "unet", "text_encoder", "controlnet"}: parameters every stage starts from
+      instead of its random initialisation (`export.initial_params` of an exported model), so
+      training continues from shipped weights when the run's checkpoints are gone.
   """
   plan = TrainingPlan() if plan is None else plan
   run_directory = Path(run_directory)
   components = model_lib.build(architecture, data.tokenizer.vocab_size)
   rngs = {name: np.random.default_rng([plan.seed, index])
           for index, name in enumerate(("vae", "unet", "text_encoder", "controlnet"))}
+
+  def start_from(name: str, fresh: Callable[[], Any]) -> Callable[[], Any]:
+    """`fresh`, or the given initial parameters once they are checked to fit it."""
+    if initial is None:
+      return fresh
+    shapes = lambda params: {path: np.shape(leaf) for path, leaf in
+                             traverse_util.flatten_dict(params).items()}
+    if shapes(jax.eval_shape(fresh)) != shapes(initial[name]):
+      raise InputError(f"the initial {name} parameters do not fit the architecture",
+                       field="default_model_architecture")
+    return lambda: initial[name]
+
   steps, finished, histories, wall_seconds = {}, {}, {}, {}
 
   def record(name, state, settings):
@@ -124,7 +147,8 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
     return TrainedModel(architecture, steps, finished, params, histories, wall_seconds)
 
   vae_state = training.run_stage(
-      "vae", run_directory / "vae", plan.vae, lambda: model_lib.init_vae(components, rngs["vae"]),
+      "vae", run_directory / "vae", plan.vae,
+      start_from("vae", lambda: model_lib.init_vae(components, rngs["vae"])),
       {}, training.vae_loss_fn(components, plan.vae),
       lambda step: training_data.vae_batch(data, training_data.step_rng(plan.vae.seed, "vae", step),
                                            plan.vae.batch_size, plan.vae.masked_fraction),
@@ -145,16 +169,19 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
         settings.singles_per_batch, settings.mask_kind_weights, settings.sheet_mode_weights,
         settings.caption_dropout))
 
+  unet_stage_start = {
+      "unet": start_from("unet", lambda: model_lib.init_unet(components, rngs["unet"])),
+      "text_encoder": start_from("text_encoder", lambda: model_lib.init_text_encoder(
+          components, rngs["text_encoder"]))}
   unet_state = training.run_stage(
       "unet", run_directory / "unet", plan.unet,
-      lambda: {"unet": model_lib.init_unet(components, rngs["unet"]),
-               "text_encoder": model_lib.init_text_encoder(components, rngs["text_encoder"])},
+      lambda: {name: make() for name, make in unet_stage_start.items()},
       {"vae": params["vae"]}, training.diffusion_loss_fn(components, scheduler, plan.unet, False),
       diffusion_batches(plan.unet, "unet"), training.DIFFUSION_METRICS, budget)
   record("unet", unet_state, plan.unet)
   params.update(jax.device_get(unet_state.ema_params))
-  initial_controlnet = lambda: model_lib.init_controlnet(components, params["unet"],
-                                                          rngs["controlnet"])
+  initial_controlnet = start_from("controlnet", lambda: model_lib.init_controlnet(
+      components, params["unet"], rngs["controlnet"]))
   if not finished["unet"]:
     params["controlnet"] = initial_controlnet()
     return result(params)

@@ -77,6 +77,7 @@ class EditRun:
     self.update_config = UpdateConfig()
     self.finetune_config = FinetuneConfig()
     self.evaluation_config = EvaluationConfig()
+    self.stages = {stage.name: stage for stage in pipeline_stages(self.config.second_iteration)}
     self._keys: dict[str, Any] = {}
     self._nerfs: dict[int, evaluate.TrainedRun] = {}
 
@@ -191,7 +192,7 @@ class EditRun:
   def key(self, name: str) -> Any:
     """The stage's settings and the keys of the stages it builds on (see the module docstring)."""
     if name not in self._keys:
-      stage = STAGES[name]
+      stage = self.stages[name]
       self._keys[name] = {"settings": stage.settings(self),
                           "after": {before: self.key(before) for before in stage.after}}
     return self._keys[name]
@@ -693,9 +694,6 @@ def pipeline_stages(second_iteration: bool) -> list[Stage]:
   return stages
 
 
-STAGES = {stage.name: stage for stage in pipeline_stages(second_iteration=True)}
-
-
 def _prepare_folder(path: Path, key: Any) -> None:
   """Clears `path` unless it holds the outputs of a run with this key; marks it with the key.
 
@@ -732,7 +730,7 @@ def run_edit(directory, until: str = "evaluate", redo: tuple[str, ...] = (),
     log: receives one line as each stage starts and ends.
   """
   run = EditRun(directory, progress)
-  stages = pipeline_stages(run.config.second_iteration)
+  stages = list(run.stages.values())
   names = [stage.name for stage in stages]
   for name in (until, *redo):
     if name not in names:

@@ -5,12 +5,8 @@ from __future__ import annotations
 import pytest
 
 from signerf_jax.data import synthetic
-from signerf_jax.diffusion import pipeline as pipeline_lib
 
 from random_pipeline import write_random_pipeline
-
-# Two denoising steps with guidance: every code path of the sampler, at little cost.
-TINY_OPTIONS = pipeline_lib.GenerationOptions(num_inference_steps=2, guidance_scale=3.0)
 
 
 @pytest.fixture(scope="session")

@@ -18,8 +18,12 @@ from safetensors.numpy import save_file
 from signerf_jax import files
 from signerf_jax.default_model import model as model_lib
 from signerf_jax.diffusion import clip_text
+from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.diffusion import weights
 from signerf_jax.diffusion import word_tokenizer
+
+# Two denoising steps with guidance: every code path of the sampler, at little cost.
+TINY_OPTIONS = pipeline_lib.GenerationOptions(num_inference_steps=2, guidance_scale=3.0)
 
 TINY_ARCHITECTURE = model_lib.Architecture(
     vae_block_out_channels=(8, 16), vae_norm_groups=4, unet_block_out_channels=(16, 32),

@@ -104,3 +104,12 @@ def test_the_figure_has_a_row_per_ablation_whatever_the_numbers(ablations_module
   # The first row has two charts (distinct values) with coloured points, not blank notes.
   first_row = figure[:ablations_module.PANEL_HEIGHT, :2 * ablations_module.PANEL_WIDTH]
   assert np.any(np.ptp(first_row.astype(int), axis=-1) > 100)
+
+
+@pytest.mark.parametrize("second_iteration", [False, True])
+def test_second_iteration_settings_change_the_edit_only_when_it_runs(ablations_module, tmp_path,
+                                                                   second_iteration):
+  enabled = [f"EditConfig.second_iteration = {second_iteration}"]
+  steps = ["second_iteration/GenerationOptions.num_inference_steps = 7"]
+  changed = edit_key(tmp_path, enabled) != edit_key(tmp_path, enabled + steps)
+  assert changed == second_iteration

@@ -14,7 +14,7 @@ from signerf_jax.editing import generation
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing import update
 
-from conftest import TINY_OPTIONS
+from random_pipeline import TINY_OPTIONS
 
 TILE = 16
 LAYOUT = sheet_lib.SheetLayout(tile_height=TILE, tile_width=TILE)
@@ -120,7 +120,7 @@ SHARDED_UPDATE = textwrap.dedent("""
     model, tests, output = sys.argv[1:]
     sys.path.insert(0, tests)
     from signerf_jax.editing import generation, update
-    from conftest import TINY_OPTIONS
+    from random_pipeline import TINY_OPTIONS
     from test_update import LAYOUT, make_sheet, make_views
     assert len(jax.devices()) == 4
     generator = generation.load_generator(model, "", "", "a red cow", "", TINY_OPTIONS,

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SMALL_CONFIG, count_compilations, small_model
+from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
 from signerf_jax import camera, parallel
 from signerf_jax.errors import InputError
@@ -35,7 +35,7 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
     from signerf_jax.errors import InputError
     from signerf_jax.nerf import train
     from analytic_scene import sphere_dataset
-    from conftest import count_compilations, small_model
+    from small_nerf import count_compilations, small_model
     from test_nerf_parallel import CONFIG, STEPS
     assert len(jax.devices()) == 2
     sphere = sphere_dataset()

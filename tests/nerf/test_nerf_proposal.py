@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SMALL_CONFIG, count_compilations
+from small_nerf import SMALL_CONFIG, count_compilations
 
 from signerf_jax.nerf import capacity, evaluate, model as nerf_model, train
 

@@ -3,7 +3,7 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
-from conftest import SMALL_CONFIG, count_compilations, small_model
+from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
 from signerf_jax.nerf import checkpoint, evaluate, render, train
 
