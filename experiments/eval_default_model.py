@@ -97,8 +97,8 @@ def print_summary(result: dict) -> None:
   ious = ", ".join(f"{scale:g}: {iou:.3f}"
                    for scale, iou in zip(shape["controlnet_scales"], shape["mean_iou"]))
   print(f"prompt adherence  {verdict('prompt_adherence')}  {prompt['share']:.3f} of "
-        f"{prompt['samples']} objects in the named colour (>= "
-        f"{gates['prompt_adherence']['threshold']})")
+        f"{prompt['samples']} objects in the named colour (VAE ceiling "
+        f"{prompt['vae_ceiling']:.3f}; >= {gates['prompt_adherence']['threshold']})")
   print(f"shape adherence   {verdict('shape_adherence')}  mean IoU by ControlNet scale {ious} "
         f"(ceiling {shape['segmentation_ceiling_iou']:.3f}; >= "
         f"{gates['shape_adherence']['threshold']} at 1, rising)")

@@ -8,6 +8,8 @@ sample's caption, starting from noise:
 1. Prompt adherence: single views whose caption names a colour, at ControlNet scale 1; a view
    passes when the dominant colour (`appearance.dominant_color`) of its generated object's pixels
    is the caption's colour (`editing.evaluation.prompt_color_adherence`). No object: a miss.
+   Its ceiling (`vae_ceiling`): the share of the same views whose true render keeps its colour
+   through the VAE round trip (what a perfect denoiser can reach through this VAE).
 2. Shape adherence: the same single views at every ControlNet scale, each view with one key at
    all scales (so only the scale differs); the IoU of the generated object's silhouette with the
    true one. The gate: IoU at scale 1 >= the threshold and rising with the scale.
@@ -435,10 +437,12 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
     generated.append(images)
     objects.append(segment(images))
     ious.append(silhouette_iou(objects[-1], silhouettes))
-  ceiling = silhouette_iou(segment(round_trip(generator, truth)), silhouettes)
+  truth_round_trip = round_trip(generator, truth)
+  ceiling = silhouette_iou(segment(truth_round_trip), silhouettes)
 
   full = list(settings.controlnet_scales).index(FULL_SCALE)
   by_color: dict[str, list[bool]] = {}
+  kept_by_vae = []
   missing = 0
   for index, caption in enumerate(views.captions):
     adherence = editing_evaluation.prompt_color_adherence(
@@ -447,6 +451,9 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
     if named is not None:
       missing += adherence is None
       by_color.setdefault(named, []).append(adherence is not None and adherence["share"] == 1.0)
+      kept = editing_evaluation.prompt_color_adherence(
+          caption, truth_round_trip[index][None], silhouettes[index][None])
+      kept_by_vae.append(kept is not None and kept["share"] == 1.0)
   hits = [hit for values in by_color.values() for hit in values]
   kinds = {kind: views.view_kinds[:, 0] == code for code, kind in enumerate(samples.VIEW_KINDS)}
   return {
@@ -454,7 +461,8 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
           "samples": len(hits), "controlnet_scale": FULL_SCALE,
           "share": float(np.mean(hits)) if hits else float("nan"),
           "per_color": {color: float(np.mean(values)) for color, values in sorted(by_color.items())},
-          "no_object_found": int(missing)},
+          "no_object_found": int(missing),
+          "vae_ceiling": float(np.mean(kept_by_vae)) if kept_by_vae else float("nan")},
       "shape_adherence": {
           "samples": len(views.captions), "controlnet_scales": list(settings.controlnet_scales),
           "mean_iou": [float(np.mean(values)) for values in ious],

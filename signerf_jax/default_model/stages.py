@@ -88,7 +88,8 @@ class TrainedModel:
 def latent_scaling_factor(components: model_lib.Components, vae_params, data, views: int
                           ) -> float:
   """1 / std of the VAE's latent means over `views` fixed training views."""
-  images = training_data.vae_batch(data, np.random.default_rng(SCALING_SEED), views, 0.0)
+  images = training_data.vae_batch(data, np.random.default_rng(SCALING_SEED), views,
+                                   0.0)["image"]
   vae = components.vae
   encode = jax.jit(lambda images: vae.apply({"params": vae_params}, 2.0 * images - 1.0,
                                             method=vae.encode).mean)

@@ -7,9 +7,10 @@ so the batch of step s is the same whether training ran straight through or was 
 the data iterator's position is the step itself.
 
 Batches (numpy, float32, images in [0, 1]):
-  `vae_batch`        [B, H, W, 3] views drawn from every view of every sample; a share of them
-                     greyed out (0.5) under a random inpainting mask, as the masked images and the
-                     empty slot the encoder will see in the pipeline;
+  `vae_batch`        {"image": [B, H, W, 3], "object": [B, H, W, 1]}: views drawn from every
+                     view of every sample, a share of them greyed out (0.5) under a random
+                     inpainting mask, as the masked images and the empty slot the encoder will
+                     see in the pipeline, and where their object is visible (1) or not (0);
   `diffusion_batch`  sheets (2 x 3 of 64-pixel tiles, a random `batches.SHEET_MODES` mode per
                      sheet) and single views, each with image, mask, control [.., 1] and the
                      caption's token ids (the empty prompt with the caption-dropout probability,
@@ -113,8 +114,9 @@ def _probabilities(values, count: int, name: str) -> np.ndarray:
 
 
 def vae_batch(data: SplitData, rng: np.random.Generator, batch_size: int,
-              masked_fraction: float) -> np.ndarray:
-  """[batch_size, H, W, 3] float32 views in [0, 1] (module docstring)."""
+              masked_fraction: float) -> dict[str, np.ndarray]:
+  """{"image": [batch_size, H, W, 3] float32 views in [0, 1], "object": [batch_size, H, W, 1]
+  float32 visible object pixels} (module docstring)."""
   views_per_sheet = data.sheets["rgb"].shape[1]
   sheet_views = data.num_sheets * views_per_sheet
   picks = rng.choice(sheet_views + data.num_singles, batch_size, replace=False)
@@ -128,7 +130,9 @@ def vae_batch(data: SplitData, rng: np.random.Generator, batch_size: int,
   kinds = rng.integers(len(data.mask_kinds), size=batch_size)
   masks = batches.inpainting_masks(view_arrays, kinds)[:, 0, ..., None]
   masks *= (rng.uniform(size=batch_size) < masked_fraction)[:, None, None, None]
-  return images * (1 - masks) + EMPTY_SLOT_GREY * masks
+  visible_object = (view_arrays["silhouette"][:, 0, ..., None] > 0) * (1 - masks)
+  return {"image": images * (1 - masks) + EMPTY_SLOT_GREY * masks,
+          "object": visible_object.astype(np.float32)}
 
 
 def diffusion_batch(data: SplitData, rng: np.random.Generator, num_sheets: int, num_singles: int,

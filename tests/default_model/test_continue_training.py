@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from signerf_jax.default_model import export, model, stages, training
+from signerf_jax.default_model import export, stages, training
 from signerf_jax.errors import InputError
 
 # No steps: what a stage returns is exactly what it started from (and nothing compiles).

@@ -12,7 +12,8 @@ from signerf_jax.default_model import model, training, training_data
 from signerf_jax.diffusion import layers, schedulers
 from signerf_jax.errors import InputError
 
-VAE_SETTINGS = training.VaeStage(num_steps=4, batch_size=4, learning_rate=3e-3, warmup_steps=1)
+VAE_SETTINGS = training.VaeStage(num_steps=4, batch_size=4, learning_rate=3e-3, warmup_steps=1,
+                                object_weight=4.0)
 DIFFUSION_SETTINGS = dict(sheets_per_batch=2, singles_per_batch=2, learning_rate=2e-3,
                           warmup_steps=1, num_steps=3, caption_dropout=0.0)
 
@@ -52,9 +53,24 @@ def test_caption_dropout_gives_the_empty_prompt(tiny_training_data):
 def test_vae_batch_greys_out_masked_views(tiny_training_data):
   unmasked = training_data.vae_batch(tiny_training_data, np.random.default_rng(3), 6, 0.0)
   masked = training_data.vae_batch(tiny_training_data, np.random.default_rng(3), 6, 1.0)
-  assert unmasked.shape == (6, 32, 32, 3) and unmasked.dtype == np.float32
-  changed = np.any(masked != unmasked, axis=-1)
-  assert changed.any() and np.all(masked[changed] == training_data.EMPTY_SLOT_GREY)
+  assert unmasked["image"].shape == (6, 32, 32, 3) and unmasked["image"].dtype == np.float32
+  changed = np.any(masked["image"] != unmasked["image"], axis=-1)
+  assert changed.any() and np.all(masked["image"][changed] == training_data.EMPTY_SLOT_GREY)
+  # Object pixels: visible ones only (none under the grey), and every view shows its object.
+  assert unmasked["object"].shape == (6, 32, 32, 1)
+  assert np.all(unmasked["object"].sum(axis=(1, 2, 3)) > 0)
+  assert not np.any(masked["object"][..., 0][changed])
+
+
+def test_object_weight_weights_the_reconstruction_of_object_pixels(components,
+                                                                   tiny_training_data):
+  batch = training_data.vae_batch(tiny_training_data, np.random.default_rng(0), 4, 0.0)
+  params = model.init_vae(components, np.random.default_rng(0))
+  loss = lambda weight, object_pixels: float(training.vae_loss_fn(
+      components, dataclasses.replace(VAE_SETTINGS, object_weight=weight))(
+          params, {}, {**batch, "object": object_pixels}, jax.random.key(0))[0])
+  assert loss(5.0, np.zeros_like(batch["object"])) == pytest.approx(loss(1.0, batch["object"]))
+  assert loss(5.0, batch["object"]) != pytest.approx(loss(1.0, batch["object"]), rel=1e-4)
 
 
 def test_inpainting_conditioning_follows_diffusers(components):
