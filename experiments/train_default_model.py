@@ -90,8 +90,12 @@ def main(argv=None) -> int:
   parser.add_argument("--max_minutes", type=float, default=60.0,
                       help="no new training step starts after this many minutes")
   parser.add_argument("--checkpoint_minutes", type=float, default=5.0)
-  parser.add_argument("--init_from", help="an exported model every stage starts from (to continue "
+  parser.add_argument("--init_from", help="an exported model the stages start from (to continue "
                       "training without the run's checkpoints; give skipped stages 0 steps)")
+  parser.add_argument("--init_components", nargs="+", choices=export.COMPONENTS,
+                      default=list(export.COMPONENTS),
+                      help="with --init_from: the components taken from it (the others start "
+                      "from random parameters)")
   parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="export directory")
   parser.add_argument("--no_export", action="store_true")
   parser.add_argument("--gin_file", action="append", default=[])
@@ -103,7 +107,10 @@ def main(argv=None) -> int:
   data = training_data.load_split(args.data, "train")
   budget = training.RunBudget(deadline=start + 60 * args.max_minutes,
                               checkpoint_seconds=60 * args.checkpoint_minutes)
-  initial = export.initial_params(args.init_from) if args.init_from else None
+  initial = None
+  if args.init_from:
+    initial = {name: params for name, params in export.initial_params(args.init_from).items()
+               if name in args.init_components}
   trained = stages.train(args.run, data, model.Architecture(), budget, initial=initial)
   configs.save_gin_config(args.run)
 

@@ -94,6 +94,20 @@ class Cameras:
     return self.replace(fx=self.fx * scale_x, fy=self.fy * scale_y, cx=self.cx * scale_x,
                         cy=self.cy * scale_y, width=int(width), height=int(height))
 
+  def cropped(self, boxes, width: int, height: int) -> "Cameras":
+    """The cameras whose `width` x `height` images are the crop `boxes` of these cameras' images.
+
+    Args:
+      boxes: [N, 4] [x0, y0, box_width, box_height] in (continuous) pixels of these images, as
+        `editing.crops` cuts tiles: new pixel centre (j + 0.5, i + 0.5) sees old pixel
+        coordinate (x0 + (j + 0.5) box_width / width, y0 + (i + 0.5) box_height / height).
+    """
+    boxes = jnp.asarray(boxes, jnp.float32)
+    scale_x, scale_y = width / boxes[:, 2], height / boxes[:, 3]
+    return self.replace(fx=self.fx * scale_x, fy=self.fy * scale_y,
+                        cx=(self.cx - boxes[:, 0]) * scale_x, cy=(self.cy - boxes[:, 1]) * scale_y,
+                        width=int(width), height=int(height))
+
   def downscaled(self, factor: int) -> "Cameras":
     """Cameras for images downscaled by an integer factor (sizes rounded down, as OpenCV does)."""
     return self.resized(self.width // factor, self.height // factor)

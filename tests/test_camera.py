@@ -97,6 +97,25 @@ def test_resized_scales_intrinsics():
   np.testing.assert_allclose(cameras.cy, 12.75)
 
 
+@pytest.mark.parametrize("distortion", DISTORTIONS)
+def test_cropped_cameras_see_what_the_crop_of_the_image_shows(distortion):
+  cameras = make_cameras(distortion)
+  # Boxes inside, across the edge of and larger than the 64 x 48 frame; tiles of 40 x 30.
+  boxes = np.array([[10.0, 5.0, 24.0, 18.0], [-6.0, 30.0, 20.0, 15.0], [-8.0, -6.0, 80.0, 60.0]],
+                   np.float32)
+  cropped = cameras.cropped(boxes, 40, 30)
+  assert (cropped.width, cropped.height) == (40, 30)
+  rng = np.random.default_rng(3)
+  columns, rows = rng.integers(0, 40, 20), rng.integers(0, 30, 20)
+  for index in range(cameras.num_cameras):
+    x0, y0, box_width, box_height = boxes[index]
+    tile = camera.pixel_rays(cropped, index, columns + 0.5, rows + 0.5)
+    source = camera.pixel_rays(cameras, index, x0 + (columns + 0.5) * box_width / 40,
+                               y0 + (rows + 0.5) * box_height / 30)
+    np.testing.assert_allclose(tile.directions, source.directions, atol=1e-5)
+    np.testing.assert_allclose(tile.origins, source.origins, atol=1e-6)
+
+
 def test_random_rays_stay_in_range_and_do_not_recompile():
   cameras = make_cameras((-0.3, 0.1, 0.001, -0.002))
   sample = jax.jit(camera.random_rays, static_argnums=2)

@@ -539,8 +539,8 @@ def evaluate_consistency(generator: Generator, single_generator: Generator, shee
   against_means = lambda name, index: means["sheet"][index] if name == "slot_update" else None
   return {
       "sheets": count, "controlnet_scale": FULL_SCALE,
-      "slot_dataset_views": int(np.sum(sheets.view_kinds[:, tiles]
-                                       == samples.VIEW_KINDS.index("dataset"))),
+      "slot_crop_views": int(np.sum(sheets.view_kinds[:, tiles]
+                                       == samples.VIEW_KINDS.index("crop"))),
       "agreement": {name: float(np.mean([color_agreement(names[name][index],
                                                          against(name, index))
                                          for index in range(count)])) for name in names},

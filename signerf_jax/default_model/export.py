@@ -46,6 +46,7 @@ from signerf_jax.diffusion import word_tokenizer
 DIFFUSERS_WEIGHTS = "diffusion_pytorch_model.safetensors"
 TRANSFORMERS_WEIGHTS = "model.safetensors"
 PIPELINE_CLASS = "StableDiffusionControlNetInpaintPipeline"
+COMPONENTS = ("vae", "unet", "text_encoder", "controlnet")  # The trained parameter sets.
 
 
 def model_index(architecture: model_lib.Architecture) -> dict[str, Any]:
@@ -146,8 +147,8 @@ def load_checkpoint(directory: str | os.PathLike) -> LoadedCheckpoint:
 
 
 def initial_params(directory: str | os.PathLike) -> dict[str, Any]:
-  """{"vae", "unet", "text_encoder", "controlnet"}: an exported model's parameters in float32,
-  to continue training from (`stages.train(..., initial=...)`)."""
+  """{COMPONENTS}: an exported model's parameters in float32, to continue training from
+  (`stages.train(..., initial=...)`)."""
   loaded = load_checkpoint(directory)
   params = {"vae": loaded.vae_params, "unet": loaded.unet_params,
             "text_encoder": loaded.text_encoder.params, "controlnet": loaded.controlnet_params}

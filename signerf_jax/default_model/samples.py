@@ -12,12 +12,18 @@ Cameras come as in the editing pipeline. A "dataset" rig like the synthetic scen
 or forward-facing, random distance, field of view, elevations and a random turn about the
 vertical) looks at the scene centre; "reference" cameras are placed around the object from that
 rig by `signerf_jax.geometry.reference_cameras.place_reference_cameras` (the object roughly
-centred; its bounding sphere fills a random fraction of the frame within `fill_range`). The
-sheet's tiles are reference views; its slot view is a dataset view (the object small and
-anywhere in the frame, as in the image set update) with probability
-`slot_dataset_view_probability`, else one more reference view. A single view is a reference view
-with probability `reference_view_probability`, else a dataset view. Views in which the object
-shows fewer than `min_object_pixels` pixels are rejected and the whole sample is drawn again.
+centred; its bounding sphere fills a random fraction of the frame within `fill_range`). A "crop"
+view is a dataset camera that sees the object, cut down to the crop around the object that the
+pipeline's selection crops take of a dataset view (`editing.crops.selection_crop_boxes`, with a
+random margin in `crop_margin_range`; the object may sit off-centre where the crop meets the
+frame's edge) and rendered directly at the tile size: what the shipped model is given in the
+image set update with `SheetConfig.crops`. (Whole 64-pixel dataset frames, where an object
+covers a few percent of the pixels, are left out: at this size neither the VAE nor the
+diffusion model can draw such an object.) The sheet's tiles are reference views; its slot view
+is a crop view with probability `slot_crop_view_probability`, else one more reference view. A
+single view is a reference view with probability `reference_view_probability`, else a crop
+view. Views in which the object shows fewer than `min_object_pixels` pixels are rejected and
+the whole sample is drawn again.
 
 Per view (V views of H x W):
   rgb                  [V, H, W, 3] uint8   the scene with the object;
@@ -59,12 +65,13 @@ from signerf_jax.data import synthetic
 from signerf_jax.default_model import appearance as appearance_lib
 from signerf_jax.default_model import captions
 from signerf_jax.default_model import objects
+from signerf_jax.editing import crops
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import control_depth
 from signerf_jax.geometry import masks
 from signerf_jax.geometry import reference_cameras
 
-VIEW_KINDS = ("reference", "dataset")
+VIEW_KINDS = ("reference", "crop")
 DISTRACTOR_KINDS = ("cube", "ball", "cylinder")
 GROUND_TEXTURES = ("checker", "stripes", "blobs")
 OBJECT_ID = 1
@@ -96,8 +103,11 @@ class SceneSampling:
     rig_distance_range, rig_field_of_view_degrees_range, rig_low_elevation_degrees_range,
     rig_high_elevation_degrees_range, rig_arc_degrees_range: the rig's `CameraRig` fields.
     fill_range: fraction of the frame the object's bounding sphere fills in reference views.
-    reference_view_probability: a single view is a reference view (else a dataset view).
-    slot_dataset_view_probability: a sheet's slot view is a dataset view (else a reference view).
+    crop_margin_range: context around the object's projected bounding box in crop views, as a
+      fraction of its size on each side (`crops.selection_crop_boxes`' margin).
+    crop_max_upscale: crop views are at least image_size / crop_max_upscale dataset pixels wide.
+    reference_view_probability: a single view is a reference view (else a crop view).
+    slot_crop_view_probability: a sheet's slot view is a crop view (else a reference view).
     dilation_radii: pixels the stored dilated silhouettes grow by.
     min_object_pixels: fewer visible object pixels in any view rejects the sample.
     max_attempts: draws before giving up on a sample.
@@ -125,8 +135,10 @@ class SceneSampling:
   rig_high_elevation_degrees_range: tuple[float, float] = (45.0, 75.0)
   rig_arc_degrees_range: tuple[float, float] = (90.0, 180.0)
   fill_range: tuple[float, float] = (0.2, 0.6)
+  crop_margin_range: tuple[float, float] = (0.15, 0.6)
+  crop_max_upscale: float = 4.0
   reference_view_probability: float = 0.5
-  slot_dataset_view_probability: float = 0.5
+  slot_crop_view_probability: float = 0.5
   dilation_radii: tuple[int, ...] = (2, 4, 8)
   min_object_pixels: int = 16
   max_attempts: int = 30
@@ -138,6 +150,8 @@ class SceneSampling:
         "ground_half_size_range": (self.ground_half_size_range[0]
                                    >= self.object_radius_range[1] + FOOTPRINT_GAP),
         "fill_range": 0 < self.fill_range[0] <= self.fill_range[1] < 1,
+        "crop_margin_range": 0 <= self.crop_margin_range[0] <= self.crop_margin_range[1],
+        "crop_max_upscale": self.crop_max_upscale >= 1,
         "dilation_radii": (all(radius > 0 for radius in self.dilation_radii)
                            and list(self.dilation_radii) == sorted(set(self.dilation_radii))),
         "max_attempts": self.max_attempts >= 1,
@@ -146,7 +160,8 @@ class SceneSampling:
       if not valid:
         raise InputError(f"invalid value {getattr(self, name)!r} (image_size >= 8, sheet_tiles >= "
                          "1, the object must fit on the smallest ground, 0 < fill_range <= fill_range "
-                         "< 1, radii positive and increasing, max_attempts >= 1)",
+                         "< 1, 0 <= crop_margin_range ordered, crop_max_upscale >= 1, radii "
+                         "positive and increasing, max_attempts >= 1)",
                          field=f"default_model_scenes.{name}")
 
   def catalogue(self) -> tuple[objects.ObjectKind, ...]:
@@ -316,15 +331,20 @@ def _views_cameras(rng, settings: SceneSampling, scene, num_views: int, sheet: b
       dataset_cameras, corners, count=settings.sheet_tiles + 1, up=(0.0, 0.0, 1.0),
       min_fill=rng.uniform(*settings.fill_range), max_fill=settings.fill_range[1])
   dataset_view = dataset_cameras.take([seeing[rng.integers(len(seeing))]])
+  size = settings.image_size
+  box = crops.selection_crop_boxes(dataset_view, corners, size, size,
+                                   rng.uniform(*settings.crop_margin_range),
+                                   settings.crop_max_upscale)
+  crop_view = jax.tree.map(np.asarray, dataset_view.cropped(box, size, size))
   if sheet:
-    if rng.uniform() < settings.slot_dataset_view_probability:
+    if rng.uniform() < settings.slot_crop_view_probability:
       tiles = references.take(slice(0, num_views - 1))
-      return (jax.tree.map(lambda *arrays: np.concatenate(arrays), tiles, dataset_view),
+      return (jax.tree.map(lambda *arrays: np.concatenate(arrays), tiles, crop_view),
               [0] * (num_views - 1) + [1])
     return references, [0] * num_views
   if rng.uniform() < settings.reference_view_probability:
     return references.take([rng.integers(references.num_cameras)]), [0]
-  return dataset_view, [1]
+  return crop_view, [1]
 
 
 def bounding_boxes(silhouette: np.ndarray) -> np.ndarray:

@@ -6,10 +6,11 @@ Each stage trains in `<run_directory>/<stage>/` (its checkpoint, `training.CHECK
 and is skipped once it has done all its steps; a run stops starting new steps at the budget's
 deadline, so training spans as many runs as it needs. What each stage trains and freezes:
 
-  stage        trains                      frozen                      parameters used later
-  vae          AutoencoderKL               -                           raw (no averaging)
-  unet         UNet + text encoder         VAE                         moving average
-  controlnet   ControlNet (from the UNet)  VAE, UNet, text encoder     moving average
+  stage        trains                            frozen                   parameters used later
+  vae          AutoencoderKL                     -                        raw (no averaging)
+  unet         UNet + text encoder (+ ControlNet  VAE                      moving average
+               with `unet_stage.joint_controlnet`)
+  controlnet   ControlNet (optional refinement)  VAE, UNet, text encoder  moving average
 
 Between the VAE and the UNet stage the VAE's latent scaling factor is measured (1 / std of the
 latents of a fixed set of training views), so the diffusion model sees unit-variance latents;
@@ -115,9 +116,10 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
     architecture: the model's sizes (its vae_scaling_factor is replaced by the measured one).
     budget: deadline, checkpoint interval, progress display.
     plan: stage settings (default: the gin-bound `TrainingPlan`).
-    initial: {"vae", "unet", "text_encoder", "controlnet"}: parameters every stage starts from
-      instead of its random initialisation (`export.initial_params` of an exported model), so
-      training continues from shipped weights when the run's checkpoints are gone.
+    initial: {"vae", "unet", "text_encoder", "controlnet"} or some of them: parameters the
+      stages start from instead of their random initialisation (`export.initial_params` of an
+      exported model), so training continues from shipped weights when the run's checkpoints
+      are gone (or, given only the VAE, a new diffusion model is trained on it).
   """
   plan = TrainingPlan() if plan is None else plan
   run_directory = Path(run_directory)
@@ -127,7 +129,7 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
 
   def start_from(name: str, fresh: Callable[[], Any]) -> Callable[[], Any]:
     """`fresh`, or the given initial parameters once they are checked to fit it."""
-    if initial is None:
+    if initial is None or name not in initial:
       return fresh
     shapes = lambda params: {path: np.shape(leaf) for path, leaf in
                              traverse_util.flatten_dict(params).items()}
@@ -170,27 +172,31 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
         settings.singles_per_batch, settings.mask_kind_weights, settings.sheet_mode_weights,
         settings.caption_dropout))
 
-  unet_stage_start = {
-      "unet": start_from("unet", lambda: model_lib.init_unet(components, rngs["unet"])),
-      "text_encoder": start_from("text_encoder", lambda: model_lib.init_text_encoder(
-          components, rngs["text_encoder"]))}
+  def unet_stage_start():
+    start = {"unet": start_from("unet", lambda: model_lib.init_unet(components, rngs["unet"]))(),
+             "text_encoder": start_from("text_encoder", lambda: model_lib.init_text_encoder(
+                 components, rngs["text_encoder"]))()}
+    if plan.unet.joint_controlnet:
+      start["controlnet"] = start_from("controlnet", lambda: model_lib.init_controlnet(
+          components, start["unet"], rngs["controlnet"]))()
+    return start
+
   unet_state = training.run_stage(
-      "unet", run_directory / "unet", plan.unet,
-      lambda: {name: make() for name, make in unet_stage_start.items()},
-      {"vae": params["vae"]}, training.diffusion_loss_fn(components, scheduler, plan.unet, False),
+      "unet", run_directory / "unet", plan.unet, unet_stage_start, {"vae": params["vae"]},
+      training.diffusion_loss_fn(components, scheduler, plan.unet),
       diffusion_batches(plan.unet, "unet"), training.DIFFUSION_METRICS, budget)
   record("unet", unet_state, plan.unet)
   params.update(jax.device_get(unet_state.ema_params))
-  initial_controlnet = start_from("controlnet", lambda: model_lib.init_controlnet(
-      components, params["unet"], rngs["controlnet"]))
+  if "controlnet" not in params:
+    params["controlnet"] = start_from("controlnet", lambda: model_lib.init_controlnet(
+        components, params["unet"], rngs["controlnet"]))()
   if not finished["unet"]:
-    params["controlnet"] = initial_controlnet()
     return result(params)
 
   controlnet_state = training.run_stage(
       "controlnet", run_directory / "controlnet", plan.controlnet,
-      lambda: {"controlnet": initial_controlnet()}, dict(params),
-      training.diffusion_loss_fn(components, scheduler, plan.controlnet, True),
+      lambda: {"controlnet": params["controlnet"]}, params,
+      training.diffusion_loss_fn(components, scheduler, plan.controlnet),
       diffusion_batches(plan.controlnet, "controlnet"), training.DIFFUSION_METRICS, budget)
   record("controlnet", controlnet_state, plan.controlnet)
   params.update(jax.device_get(controlnet_state.ema_params))

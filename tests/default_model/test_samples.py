@@ -89,10 +89,27 @@ def test_images_masks_and_depth_agree(tiny_sampling, sheet, seed):
     assert np.all(reference[:tiny_sampling.sheet_tiles])
 
 
-def test_sheet_slot_views_come_from_the_dataset_rig_at_the_set_rate(tiny_sampling):
+def test_sheet_slot_views_are_crop_views_at_the_set_rate(tiny_sampling):
   kinds = [make(tiny_sampling, seed, True).views["view_kinds"][-1] for seed in range(12)]
-  dataset = samples.VIEW_KINDS.index("dataset")
-  assert 0 < np.sum(np.array(kinds) == dataset) < 12
+  crop = samples.VIEW_KINDS.index("crop")
+  assert 0 < np.sum(np.array(kinds) == crop) < 12
+
+
+@pytest.mark.parametrize("margin", [0.15, 0.6])
+def test_crop_views_frame_the_object_as_the_pipelines_selection_crops(tiny_sampling, margin):
+  settings = dataclasses.replace(tiny_sampling, reference_view_probability=0.0,
+                                 crop_margin_range=(margin, margin))
+  size = settings.image_size
+  for seed in range(4):
+    sample = make(settings, seed, False)
+    assert sample.views["view_kinds"][0] == samples.VIEW_KINDS.index("crop")
+    # The object's bounding sphere projects inside the crop, and its bounding box (before the
+    # margin) spans about 1 / (1 + 2 margin) of the tile along its longer side, unless the crop
+    # was shifted to stay inside the dataset frame or held at its smallest size.
+    x0, y0, x1, y1 = sample.views["boxes"][0]
+    extent = max(x1 - x0, y1 - y0) / size
+    assert extent <= 1.0 / (1 + 2 * margin) + 2.0 / size
+    assert extent >= 0.3 / (1 + 2 * margin)
 
 
 def test_generator_runs_without_the_shared_meshes(monkeypatch, tmp_path):
@@ -119,7 +136,9 @@ def test_catalogue_uses_the_shared_meshes(monkeypatch, shared_data):
 
 
 @pytest.mark.parametrize("field, value", [("ground_half_size_range", (0.3, 0.5)),
-                                          ("fill_range", (0.5, 0.4)), ("dilation_radii", (4, 2))])
+                                          ("fill_range", (0.5, 0.4)), ("dilation_radii", (4, 2)),
+                                          ("crop_margin_range", (0.5, 0.2)),
+                                          ("crop_max_upscale", 0.5)])
 def test_bad_settings_raise_input_errors(tiny_sampling, field, value):
   with pytest.raises(InputError, match=field):
     dataclasses.replace(tiny_sampling, **{field: value})

@@ -112,27 +112,53 @@ def test_vae_steps_reduce_the_loss(components, tiny_training_data):
   assert after < 0.9 * before
 
 
-@pytest.mark.parametrize("stage", ["unet", "controlnet"])
-def test_diffusion_steps_reduce_the_loss(stage, components, tiny_architecture,
-                                         tiny_training_data):
-  settings = (training.UNetStage if stage == "unet" else training.ControlNetStage)(
-      **DIFFUSION_SETTINGS)
+def _diffusion_setup(stage, components, tiny_architecture, tiny_training_data, **overrides):
+  """(loss function, params, frozen, batch, settings) of the "unet" (joint with the
+  ControlNet), "unet_alone" or "controlnet" stage."""
+  settings = (training.ControlNetStage if stage == "controlnet" else training.UNetStage)(
+      **{**DIFFUSION_SETTINGS, **overrides})
   batch = jax.tree.map(jnp.asarray, training_data.diffusion_batch(
       tiny_training_data, np.random.default_rng(0), 2, 2, settings.mask_kind_weights,
       settings.sheet_mode_weights, 0.0))
   rng = np.random.default_rng(0)
   weights = {"vae": model.init_vae(components, rng), "unet": model.init_unet(components, rng),
              "text_encoder": model.init_text_encoder(components, rng)}
+  weights["controlnet"] = model.init_controlnet(components, weights["unet"], rng)
+  trained = {"unet": ("unet", "text_encoder", "controlnet"),
+             "unet_alone": ("unet", "text_encoder"), "controlnet": ("controlnet",)}[stage]
+  params = {name: weights[name] for name in trained}
+  frozen = {name: value for name, value in weights.items()
+            if name not in trained and (name != "controlnet" or stage != "unet_alone")}
   scheduler = schedulers.scheduler_config(tiny_architecture.scheduler_config())
-  if stage == "unet":
-    params, frozen = {"unet": weights["unet"], "text_encoder": weights["text_encoder"]}, {
-        "vae": weights["vae"]}
-  else:
-    params = {"controlnet": model.init_controlnet(components, weights["unet"], rng)}
-    frozen = weights
-  loss_fn = training.diffusion_loss_fn(components, scheduler, settings, stage == "controlnet")
+  return (training.diffusion_loss_fn(components, scheduler, settings), params, frozen, batch,
+          settings)
+
+
+@pytest.mark.parametrize("stage", ["unet", "unet_alone", "controlnet"])
+def test_diffusion_steps_reduce_the_loss(stage, components, tiny_architecture,
+                                         tiny_training_data):
+  loss_fn, params, frozen, batch, settings = _diffusion_setup(
+      stage, components, tiny_architecture, tiny_training_data)
   before, after = _loss_goes_down(loss_fn, params, frozen, batch, settings)
   assert after < before
+
+
+@pytest.mark.parametrize("control_dropout", [0.0, 0.5, 1.0])
+def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero(
+    control_dropout, components, tiny_architecture, tiny_training_data):
+  loss_fn, params, frozen, batch, _ = _diffusion_setup(
+      "unet", components, tiny_architecture, tiny_training_data,
+      control_dropout=control_dropout)
+  # Zero convolutions made non-zero, so the ControlNet changes the UNet's output.
+  params["controlnet"] = jax.tree.map(lambda value: value + 0.05, params["controlnet"])
+  without = dict(params, controlnet=jax.tree.map(jnp.zeros_like, params["controlnet"]))
+  per_part = lambda params: jax.jit(lambda params: loss_fn(params, frozen, batch,
+                                                           jax.random.key(3))[1])(params)
+  with_control, zero_control = per_part(params), per_part(without)
+  changed = [not np.isclose(with_control[name], zero_control[name], rtol=1e-6)
+             for name in ("loss_sheets", "loss_singles")]
+  # Dropout 1: no sample sees the ControlNet; 0: every sample does (both parts change).
+  assert {0.0: all(changed), 0.5: True, 1.0: not any(changed)}[control_dropout]
 
 
 def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_training_data):
@@ -157,18 +183,30 @@ def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_traini
       VAE_SETTINGS, num_steps=5))
 
 
-def test_checkpoint_of_another_configuration_is_an_input_error(tmp_path, components):
+def test_checkpoint_restores_into_more_steps_and_refuses_another_model(tmp_path, components,
+                                                                       tiny_architecture):
   params = model.init_vae(components, np.random.default_rng(0))
   state = training.init_state(params, VAE_SETTINGS, training.VAE_METRICS)
+  state = state.replace(step=jnp.asarray(3, jnp.int32), history={
+      name: values.at[:3].set(1.0) for name, values in state.history.items()})
   path = tmp_path / training.CHECKPOINT_NAME
   training.save_checkpoint(path, state)
   restored = training.restore_checkpoint(path, state)
   jax.tree.map(np.testing.assert_array_equal, jax.tree.map(np.asarray, restored),
                jax.tree.map(np.asarray, state))
+  # A stage given more steps trains on from its checkpoint: the history grows with NaN.
   longer = training.init_state(params, dataclasses.replace(VAE_SETTINGS, num_steps=9),
                                training.VAE_METRICS)
+  extended = training.restore_checkpoint(path, longer)
+  assert int(extended.step) == 3
+  loss = np.asarray(extended.history["loss"])
+  assert loss.shape == (9,) and np.all(loss[:3] == 1.0) and np.isnan(loss[3:]).all()
+  other = model.build(dataclasses.replace(tiny_architecture, vae_block_out_channels=(8, 24)),
+                      8)
+  wider = training.init_state(model.init_vae(other, np.random.default_rng(0)), VAE_SETTINGS,
+                              training.VAE_METRICS)
   with pytest.raises(InputError, match="checkpoint"):
-    training.restore_checkpoint(path, longer)
+    training.restore_checkpoint(path, wider)
 
 
 @pytest.mark.parametrize("function", ["winograd", "upsample"])
