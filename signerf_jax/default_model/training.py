@@ -15,10 +15,10 @@ Three stages, run in order, each with its own `TrainState`:
                 (Hang et al. 2023), with more weight on masked latents. Each sample gets the
                 ControlNet at scale 1, or at scale 0 with probability `control_dropout`, so
                 the UNet alone stays a complete model (scale 0 ignores the depth) and the
-                ControlNet learns what depth adds (scale 1 follows it). Trained from the start
-                this way, the ControlNet shapes the output within a few hundred steps; added
-                afterwards to a frozen UNet through its zero convolutions, it had not moved the
-                loss after 1,300 steps (the shipped model's first recipe).
+                ControlNet learns what depth adds (scale 1 follows it). Trained this way, by
+                2,600 steps the ControlNet lowered the masked selection-region v-loss by 14-22%;
+                added afterwards to a frozen UNet through its zero convolutions, it had not
+                moved the loss after 1,300 steps (the shipped model's first recipe).
   "controlnet"  optional: the ControlNet alone on the normalised control depth, everything else
                 frozen (ControlNet training as its paper does it, e.g. for a new control).
 

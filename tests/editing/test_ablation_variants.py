@@ -64,10 +64,10 @@ def test_the_baseline_is_one_edit_whichever_ablation_lists_it(ablations_module, 
   by_name = {name: {variant.name: variant for variant in ablation.variants} for name, ablation
              in ablations_module.ablations(ablations_module.AblationConfig()).items()}
   baselines = [by_name["propagation"]["baseline"], by_name["controlnet_scale"]["scale_1"],
-               by_name["sheet_layout"]["2x3"], by_name["crops"]["full_frames"]]
+               by_name["sheet_layout"]["2x3"], by_name["crops"]["crops"]]
   keys = {edit_key(tmp_path, variant.bindings) for variant in baselines}
   assert len(keys) == 1
-  assert edit_key(tmp_path, by_name["crops"]["crops"].bindings) not in keys
+  assert edit_key(tmp_path, by_name["crops"]["full_frames"].bindings) not in keys
 
 
 def test_a_missing_proxy_mesh_is_skipped_and_named(ablations_module, tmp_path):
