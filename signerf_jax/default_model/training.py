@@ -362,17 +362,18 @@ def restore_checkpoint(path: str | os.PathLike, template: TrainState) -> TrainSt
     restored = flax.serialization.from_bytes(template, path.read_bytes())
   except (OSError, ValueError, KeyError, TypeError) as error:
     raise InputError(f"not a checkpoint of this stage and configuration ({error})", path) from None
-  # The stage's num_steps may have been raised (or lowered) since: keep the metrics of the steps
-  # done, NaN for the rest, so training extends from the checkpoint.
-  resize = lambda values, length: np.concatenate(
-      [np.asarray(values)[:length], np.full(max(length - len(values), 0), np.nan, np.float32)])
-  if isinstance(restored.history, dict) and set(restored.history) == set(template.history):
-    restored = restored.replace(history={
-        name: resize(values, template.history[name].shape[0])
-        for name, values in restored.history.items()})
   shapes = lambda tree: jax.tree.map(np.shape, tree)
-  if shapes(restored) != shapes(template):
+  if (not isinstance(restored.history, dict) or set(restored.history) != set(template.history)
+      or shapes(restored.replace(history={})) != shapes(template.replace(history={}))):
     raise InputError("checkpoint shapes differ from this configuration's", path)
+  # The stage's num_steps may have changed since: raised, the history gets NaN for the new steps
+  # and training extends from the checkpoint; lowered, the steps done keep their metrics (the
+  # stage counts as finished).
+  length = max(template.history["loss"].shape[0], int(restored.step))
+  restored = restored.replace(history={
+      name: np.concatenate([np.asarray(values)[:length],
+                            np.full(max(length - len(values), 0), np.nan, np.float32)])
+      for name, values in restored.history.items()})
   return jax.tree.map(jnp.asarray, restored)
 
 

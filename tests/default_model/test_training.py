@@ -183,8 +183,8 @@ def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_traini
       VAE_SETTINGS, num_steps=5))
 
 
-def test_checkpoint_restores_into_more_steps_and_refuses_another_model(tmp_path, components,
-                                                                       tiny_architecture):
+def test_checkpoint_restores_into_other_step_counts_and_refuses_another_model(
+    tmp_path, components, tiny_architecture):
   params = model.init_vae(components, np.random.default_rng(0))
   state = training.init_state(params, VAE_SETTINGS, training.VAE_METRICS)
   state = state.replace(step=jnp.asarray(3, jnp.int32), history={
@@ -201,6 +201,11 @@ def test_checkpoint_restores_into_more_steps_and_refuses_another_model(tmp_path,
   assert int(extended.step) == 3
   loss = np.asarray(extended.history["loss"])
   assert loss.shape == (9,) and np.all(loss[:3] == 1.0) and np.isnan(loss[3:]).all()
+  # Given fewer steps than it has done, it is finished and keeps every step's metrics.
+  shorter = training.init_state(params, dataclasses.replace(VAE_SETTINGS, num_steps=2),
+                                training.VAE_METRICS)
+  np.testing.assert_array_equal(
+      training.restore_checkpoint(path, shorter).history["loss"], state.history["loss"][:3])
   other = model.build(dataclasses.replace(tiny_architecture, vae_block_out_channels=(8, 24)),
                       8)
   wider = training.init_state(model.init_vae(other, np.random.default_rng(0)), VAE_SETTINGS,
