@@ -540,7 +540,7 @@ def evaluate_consistency(generator: Generator, single_generator: Generator, shee
   return {
       "sheets": count, "controlnet_scale": FULL_SCALE,
       "slot_crop_views": int(np.sum(sheets.view_kinds[:, tiles]
-                                       == samples.VIEW_KINDS.index("crop"))),
+                                    == samples.VIEW_KINDS.index("crop"))),
       "agreement": {name: float(np.mean([color_agreement(names[name][index],
                                                          against(name, index))
                                          for index in range(count)])) for name in names},

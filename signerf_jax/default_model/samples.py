@@ -331,20 +331,24 @@ def _views_cameras(rng, settings: SceneSampling, scene, num_views: int, sheet: b
       dataset_cameras, corners, count=settings.sheet_tiles + 1, up=(0.0, 0.0, 1.0),
       min_fill=rng.uniform(*settings.fill_range), max_fill=settings.fill_range[1])
   dataset_view = dataset_cameras.take([seeing[rng.integers(len(seeing))]])
-  size = settings.image_size
-  box = crops.selection_crop_boxes(dataset_view, corners, size, size,
-                                   rng.uniform(*settings.crop_margin_range),
-                                   settings.crop_max_upscale)
-  crop_view = jax.tree.map(np.asarray, dataset_view.cropped(box, size, size))
+  # Drawn for every sample, used or not, so that the random stream (the dataset) stays the same.
+  crop_margin = rng.uniform(*settings.crop_margin_range)
+
+  def crop_view():
+    size = settings.image_size
+    box = crops.selection_crop_boxes(dataset_view, corners, size, size, crop_margin,
+                                     settings.crop_max_upscale)
+    return jax.tree.map(np.asarray, dataset_view.cropped(box, size, size))
+
   if sheet:
     if rng.uniform() < settings.slot_crop_view_probability:
       tiles = references.take(slice(0, num_views - 1))
-      return (jax.tree.map(lambda *arrays: np.concatenate(arrays), tiles, crop_view),
+      return (jax.tree.map(lambda *arrays: np.concatenate(arrays), tiles, crop_view()),
               [0] * (num_views - 1) + [1])
     return references, [0] * num_views
   if rng.uniform() < settings.reference_view_probability:
     return references.take([rng.integers(references.num_cameras)]), [0]
-  return crop_view, [1]
+  return crop_view(), [1]
 
 
 def bounding_boxes(silhouette: np.ndarray) -> np.ndarray:
