@@ -15,7 +15,9 @@ changes one thing of it (values: `ablations.*` in that file):
   propagation       sheet propagation against independent per-view generation: the baseline's
                     evaluation edits some views on their own too (same prompt, seed, settings)
                     and compares verified correspondences (no extra run);
-  crops             whole downscaled frames as tiles against crops around the selection.
+  crops             whole downscaled frames as tiles against crops around the selection;
+  nerf_update       the NeRF update: fine-tuned or retrained, inside the edit region only
+                    (`FinetuneConfig.edit_region`) or as a whole, as the paper does.
 
 The synthetic scene (OUT/scene) and the original NeRF (OUT/original) are made once; every
 variant is an edit run in OUT/ABLATION/VARIANT reusing that NeRF, and variants that are the same
@@ -74,12 +76,16 @@ class AblationConfig:
     proxies: "spot_high_poly", "spot_low_poly", a mesh file or primitive:NAME.
     sheet_layouts: (rows, columns) of the sheet.
     crops: SheetConfig.crops values.
+    nerf_updates: EditConfig.nerf_update values ("finetune", "retrain").
+    edit_regions: FinetuneConfig.edit_region values.
   """
 
   controlnet_scales: tuple[float, ...] = (0.0, 0.4, 0.7, 1.0)
   proxies: tuple[str, ...] = ("spot_high_poly", "spot_low_poly", "primitive:cow")
   sheet_layouts: tuple[tuple[int, int], ...] = ((2, 2), (2, 3), (3, 3))
   crops: tuple[bool, ...] = (False, True)
+  nerf_updates: tuple[str, ...] = ("finetune", "retrain")
+  edit_regions: tuple[bool, ...] = (True, False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,6 +132,12 @@ def ablations(config: AblationConfig) -> dict[str, Ablation]:
       "crops": Ablation("tiles: whole downscaled frames against crops around the selection", [
           Variant("crops" if crops else "full_frames", (f"SheetConfig.crops = {bool(crops)}",))
           for crops in config.crops]),
+      "nerf_update": Ablation("NeRF update: fine-tuned or retrained, inside the edit region "
+                              "only or as a whole", [
+          Variant(f"{update}_{'region' if region else 'whole'}",
+                  (f"EditConfig.nerf_update = {update!r}",
+                   f"FinetuneConfig.edit_region = {bool(region)}"))
+          for update in config.nerf_updates for region in config.edit_regions]),
   }
 
 

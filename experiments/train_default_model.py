@@ -128,7 +128,9 @@ def main(argv=None) -> int:
   result["total_training_wall_seconds"] = sum(
       stage["wall_seconds"] for stage in result["stages"].values())
   result["vae_scaling_factor"] = trained.architecture.vae_scaling_factor
-  if not args.no_export and trained.steps.get("unet", 0) > 0:
+  # A UNet exists once its stage has begun or when it came with --init_from.
+  has_unet = trained.steps.get("unet", 0) > 0 or "unet" in (initial or {})
+  if not args.no_export and has_unet:
     dtype = np.float16
     sizes = export.write_checkpoint(args.weights, trained.architecture, trained.params,
                                     data.tokenizer, dtype)

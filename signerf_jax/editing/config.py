@@ -224,11 +224,24 @@ class FinetuneConfig:
     lpips_weights: a safetensors file of VGG-LPIPS weights (`metrics.lpips`); "" = no LPIPS.
     lpips_weight: the LPIPS term's weight (the paper applies LPIPS when fine-tuning edits).
     patch_size: side of the square patches rendered for LPIPS (at least 16).
+    edit_region: the updated NeRF is rendered only inside the selection's box (grown by
+      `region_margin`), over the frozen original NeRF everywhere else (`nerf.model`'s edit
+      regions): nothing outside the box can change, however the edited views disagree. False
+      updates the whole scene, as the paper does.
+    region_margin: added to every side of the selection's box, as a fraction of its largest
+      side (the generated object may exceed the selection a little, as the masks may).
   """
 
   lpips_weights: str = ""
   lpips_weight: float = 0.1
   patch_size: int = 32
+  edit_region: bool = True
+  region_margin: float = 0.25
+
+  def __post_init__(self):
+    if not self.region_margin >= 0:
+      raise InputError(f"must be >= 0, got {self.region_margin!r}",
+                       field="FinetuneConfig.region_margin")
 
 
 @gin.configurable

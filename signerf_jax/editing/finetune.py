@@ -2,9 +2,13 @@
 
 The paper (appendix "Training") fine-tunes the original NeRF for edits, with re-initialised
 optimisers and an LPIPS loss for consistency, and trains a new NeRF from scratch for inserted
-objects. Retraining is ordinary `nerf.train.train` on the edited dataset. Fine-tuning starts from
-the original parameters with a fresh optimiser state and occupancy grid (`train.init_state`) and
-minimises, per step,
+objects. By default both update only an *edit region* (`FinetuneConfig.edit_region`, see
+`nerf.model`): the selection's box, grown by a margin, rendered by the updated field over the
+frozen original field everywhere else, so that what the edited views disagree on cannot become
+floaters over the background. Retraining is ordinary `nerf.train.train` on the edited dataset
+(a fresh field, inside the region when there is one). Fine-tuning starts from the original
+parameters with a fresh optimiser state and occupancy grid (`train.init_state`) and minimises,
+per step,
 
   L1(render, target) + distortion + interlevel [+ lpips_weight * LPIPS(render, target)],
 
@@ -106,10 +110,10 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     ray_weights = pixel_weight * outputs["ray_complete"]
     l1 = weighted_l1(outputs["rgb"], target, ray_weights)
     loss = l1 + config.distortion_loss_weight * losses.distortion_loss(
-        aux["edges"], outputs["weights"], model.scene.extent, ray_weights)
+        aux["edges"], aux["weights"], model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
-          aux["edges"], outputs["weights"], aux["proposals"], ray_weights)
+          aux["edges"], aux["weights"], aux["proposals"], ray_weights)
     statistics = {"l1": l1, "mse": losses.weighted_mse(outputs["rgb"], target, ray_weights),
                   "samples": aux["samples_evaluated"],
                   "complete_fraction": jnp.mean(outputs["ray_complete"])}

@@ -495,23 +495,37 @@ def update_nerf(run: EditRun, iteration: int = 1) -> str:
   run_dir = run.directory.path("edited", iteration=iteration)
   data_options = {"root": str(dataset_dir.resolve()), "downscale": 1}
   config = _scoped(method, train.TrainConfig)
+  start = run.nerf(iteration - 1)
+  model, init_variables = start.model, start.variables
+  if run.finetune_config.edit_region and model.edit_region is None:
+    model = dataclasses.replace(model, edit_region=run.selection.grown_bounds(
+        run.finetune_config.region_margin))
+    init_variables = {"params": start.variables["params"], "original": start.variables}
+  region = "" if model.edit_region is None else (
+      ", inside the box " + " .. ".join(str(np.round(corner, 3).tolist())
+                                        for corner in model.edit_region) +
+      " only (the original NeRF elsewhere)")
   if method == "retrain":
+    # A new field (over the original one outside the edit region); without an edit region a
+    # new NeRF built for the edited dataset, as for any dataset.
+    kept = {"original": init_variables["original"]} if model.edit_region is not None else None
     trainer = train.train(edited, run_dir, config=config, data_options=data_options,
+                          model=model if kept else None, init_variables=kept,
                           progress=run.progress)
     how = "retrained from scratch"
   else:
-    start = run.nerf(iteration - 1)
     losses = finetune.FinetuneLosses(
         lpips_weight=run.finetune_config.lpips_weight if run.finetune_config.lpips_weights
         else 0.0, patch_size=run.finetune_config.patch_size)
     trainer = finetune.finetune(
-        edited, run_dir, model=start.model, init_variables=start.variables, config=config,
+        edited, run_dir, model=model, init_variables=init_variables, config=config,
         loss_settings=losses, lpips_params=finetune.load_lpips(run.finetune_config.lpips_weights),
-        edited_bounds=run.selection.bounds, data_options=data_options, progress=run.progress)
+        edited_bounds=model.edit_region or run.selection.bounds, data_options=data_options,
+        progress=run.progress)
     how = ("fine-tuned from the " + ("original" if iteration == 1 else "edited") +
            " NeRF (L1" + (" + LPIPS)" if losses.uses_lpips else ")"))
   run._nerfs.pop(iteration, None)  # pylint: disable=protected-access
-  return (f"{how}: {trainer.step} steps ({trainer.seconds_trained:.0f} s), last batch "
+  return (f"{how}{region}: {trainer.step} steps ({trainer.seconds_trained:.0f} s), last batch "
           f"{trainer.last_statistics.get('psnr', float('nan')):.2f} dB: {run_dir}")
 
 

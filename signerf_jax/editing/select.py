@@ -59,6 +59,13 @@ class EditSelection:
     points = self.points
     return np.stack([points.min(0), points.max(0)])
 
+  def grown_bounds(self, margin: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """((min x, y, z), (max x, y, z)): `bounds` grown on every side by `margin` times the
+    largest side (the edited NeRF's region, `FinetuneConfig.edit_region`)."""
+    lower, upper = self.bounds
+    grow = margin * float(np.max(upper - lower))
+    return tuple(map(float, lower - grow)), tuple(map(float, upper + grow))
+
   def sphere(self) -> tuple[np.ndarray, float]:
     """Centre and radius of a sphere around the selection (control depth range, cameras)."""
     return reference_cameras.selection_sphere(self.points)

@@ -2,7 +2,14 @@
 
 `NerfModel` is static (hashable; it fixes every shape); `variables` is the pytree that changes:
   {"params": {"field": ..., "proposal_0": ..., ...},    # trained by the optimizer
-   "occupancy": [R, R, R] float32}                       # occupancy sampler only, not trained
+   "occupancy": [R, R, R] float32,                       # occupancy sampler only, not trained
+   "original": {"params": ..., "occupancy": ...}}        # edit regions only, frozen
+
+An edited scene can be a NeRF with an *edit region*: a box inside which its own field is
+rendered, while before and after the box every ray sees the original scene's field, frozen
+(`variables["original"]`, same architecture). So an edit cannot move anything outside the box
+(the original's renders there are reproduced exactly), and the trained field models only what
+the box holds: its samples are spent there alone.
 """
 
 from __future__ import annotations
@@ -37,10 +44,31 @@ Variables = dict[str, Any]
 
 @dataclasses.dataclass(frozen=True)
 class NerfModel:
-  """A scene's NeRF architecture: its geometry and capacity (hashable, static under jit)."""
+  """A scene's NeRF architecture: its geometry and capacity (hashable, static under jit).
+
+  Attributes:
+    scene, capacity: the scene's geometry and the model's size.
+    edit_region: None, or ((min x, y, z), (max x, y, z)) in scene units: the box where this
+      model's field is rendered over the frozen original's (module docstring).
+  """
 
   scene: SceneInfo
   capacity: Capacity
+  edit_region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+  def __post_init__(self):
+    if self.edit_region is not None:
+      lower, upper = np.asarray(self.edit_region, np.float64).reshape(2, 3)
+      if not np.all(upper > lower):
+        raise InputError(f"an edit region needs min < max on every axis, got {self.edit_region}",
+                         field="edit_region")
+      object.__setattr__(self, "edit_region", (tuple(map(float, lower)),
+                                               tuple(map(float, upper))))
+
+  @property
+  def original(self) -> "NerfModel":
+    """The model of the original scene an edit region is rendered over."""
+    return dataclasses.replace(self, edit_region=None)
 
   @functools.cached_property
   def field(self) -> RadianceField:
@@ -98,7 +126,8 @@ class NerfModel:
 
 
 def init_variables(model: NerfModel, key) -> Variables:
-  """Fresh variables (random fields, occupancy all unvisited)."""
+  """Fresh variables (random fields, occupancy all unvisited; for an edit region, an untrained
+  original too, to be replaced by the original scene's variables)."""
   keys = jax.random.split(key, 1 + len(model.proposal_fields))
   points = jnp.full((1, 3), 0.5, jnp.float32)
   directions = jnp.array([[0.0, 0.0, 1.0]], jnp.float32)
@@ -109,6 +138,8 @@ def init_variables(model: NerfModel, key) -> Variables:
   variables = {"params": params}
   if model.capacity.sampler == "occupancy":
     variables["occupancy"] = occupancy.initial_grid(model.capacity.occupancy_resolution)
+  if model.edit_region is not None:
+    variables["original"] = init_variables(model.original, key)
   return variables
 
 
@@ -150,29 +181,80 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
 
   Args:
     model: the static model.
-    variables: {"params", optional "occupancy"}.
+    variables: {"params", optional "occupancy"} (and "original" for an edit region).
     rays: Rays of shape [R].
     key: PRNG key for stratified jitter (ignored when not training).
     training: jitter samples, use appearance codes of `rays.camera_indices`, and (occupancy
       sampler) drop rays that overflow the fixed sample budget instead of evaluating them all.
   Returns:
     outputs: `volume.volume_render`'s dict, plus "ray_complete" [R] bool (False for dropped rays).
-    aux: terms for the losses and statistics: "edges" [R, N + 1] of `outputs["weights"]`,
-      "proposals" [(edges, weights)] of the proposal networks (empty for the occupancy sampler),
-      "samples_evaluated" (radiance-field evaluations).
+    aux: terms for the losses and statistics, of the trained field alone (inside the edit
+      region for an edit): "edges" [R, N + 1] and "weights" [R, N] of its samples, "proposals"
+      [(edges, weights)] of the proposal networks (empty for the occupancy sampler),
+      "samples_evaluated" (radiance-field evaluations, all fields).
+  """
+  if model.edit_region is None:
+    samples, ray_complete, aux = _field_samples(model, variables, rays, key, training,
+                                                _ray_range(model, rays), finish=True)
+    outputs = volume.volume_render(*samples, rays.cos_to_optical_axis, model.background)
+    aux.update(edges=samples[2], weights=outputs["weights"])
+  else:
+    outputs, ray_complete, aux = _render_edit(model, variables, rays, key, training)
+  outputs["ray_complete"] = ray_complete
+  return outputs, aux
+
+
+def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, training: bool):
+  """An edit region's rendering: the trained field on each ray's stretch inside the region, the
+  frozen original field (`variables["original"]`) before and after it, composited as one field
+  (`volume.merge_samples`)."""
+  original = model.original
+  original_key, edit_key = jax.random.split(key)
+  t_near, t_far = _ray_range(original, rays)
+  outer, outer_complete, original_aux = _field_samples(
+      original, jax.lax.stop_gradient(variables["original"]), rays, original_key, training,
+      (t_near, t_far), finish=True)
+  t_in, t_out, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.edit_region)
+  t_in = jnp.clip(t_in, t_near, t_far)
+  t_out = jnp.clip(t_out, t_in, t_far)
+  # Rays that miss the region (within the modelled range) get its empty stretch at the
+  # original's last edge, where it splits none of the original's intervals: they render
+  # exactly as the original does.
+  crossing = hit & (t_out > t_in)
+  last_edge = outer[2][..., -1]
+  t_in, t_out = (jnp.where(crossing, t, last_edge) for t in (t_in, t_out))
+  inner, inner_complete, aux = _field_samples(model, variables, rays, edit_key, training,
+                                              (t_in, t_out), finish=False)
+  aux.update(edges=inner[2], weights=volume.compute_weights(inner[0], inner[2])[0],
+             samples_evaluated=aux["samples_evaluated"] + original_aux["samples_evaluated"])
+  outputs = volume.volume_render(*volume.merge_samples(outer, inner, t_in, t_out),
+                                 rays.cos_to_optical_axis, original.background)
+  return outputs, outer_complete & inner_complete, aux
+
+
+def _field_samples(model: NerfModel, variables: Variables, rays: Rays, key, training: bool,
+                   ray_range, finish: bool):
+  """The field's samples along each ray's [near, far] = `ray_range` ([R] each).
+
+  Args:
+    finish: apply the background model to the last interval (`_finish_edges`): False for a
+      stretch of the ray that other samples continue.
+  Returns:
+    (densities [R, N], rgbs [R, N, 3], edges [R, N + 1]), ray_complete [R] bool, and
+    {"proposals", "samples_evaluated"} (see `render_rays`).
   """
   if model.capacity.sampler == "occupancy":
-    return _render_occupancy(model, variables, rays, key, training)
-  return _render_proposal(model, variables, rays, key, training)
+    return _occupancy_samples(model, variables, rays, key, training, ray_range, finish)
+  return _proposal_samples(model, variables, rays, key, training, ray_range, finish)
 
 
 def _appearance(model: NerfModel, rays: Rays, training: bool):
   return rays.camera_indices if training else jnp.full(rays.shape, -1, jnp.int32)
 
 
-def _render_occupancy(model, variables, rays, key, training):
+def _occupancy_samples(model, variables, rays, key, training, ray_range, finish):
   capacity = model.capacity
-  t_near, t_far = _ray_range(model, rays)
+  t_near, t_far = ray_range
   edges = sampling.marching_edges(key, t_near, t_far, model.march_step, capacity.march_steps,
                                   training)
   centres = sampling.midpoints(edges)
@@ -232,18 +314,18 @@ def _render_occupancy(model, variables, rays, key, training):
         lambda state: state[0] * budget < count, body,
         (jnp.int32(0), jnp.zeros(mask.size, jnp.float32), jnp.zeros((mask.size, 3), jnp.float32)))
     ray_complete, samples = jnp.ones(rays.shape, bool), count
-  edges = _finish_edges(model, edges)
-  outputs = volume.volume_render(densities.reshape(num_rays, num_steps),
-                                 rgbs.reshape(num_rays, num_steps, 3), edges,
-                                 rays.cos_to_optical_axis, model.background)
-  outputs["ray_complete"] = ray_complete
-  return outputs, {"proposals": [], "edges": edges, "samples_evaluated": samples}
+  if finish:
+    edges = _finish_edges(model, edges)
+  along_rays = (densities.reshape(num_rays, num_steps), rgbs.reshape(num_rays, num_steps, 3),
+                   edges)
+  return along_rays, ray_complete, {"proposals": [], "samples_evaluated": samples}
 
 
-def _render_proposal(model, variables, rays, key, training):
+def _proposal_samples(model, variables, rays, key, training, ray_range, finish):
   capacity = model.capacity
   params = variables["params"]
-  t_near, t_far = _ray_range(model, rays)
+  t_near, t_far = ray_range
+  finished = (lambda edges: _finish_edges(model, edges)) if finish else (lambda edges: edges)
   keys = jax.random.split(key, len(model.proposal_fields) + 1)
   if capacity.contract:
     edges = sampling.spaced_edges(keys[0], t_near, t_far, capacity.proposal_samples[0], training,
@@ -261,18 +343,14 @@ def _render_proposal(model, variables, rays, key, training):
   next_counts = list(capacity.proposal_samples[1:]) + [capacity.samples_per_ray]
   for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
     density = field.apply({"params": params[f"proposal_{index}"]}, points_of(edges))
-    finished = _finish_edges(model, edges)
-    weights, _ = volume.compute_weights(density, finished)
-    proposals.append((finished, weights))
+    weights, _ = volume.compute_weights(density, finished(edges))
+    proposals.append((finished(edges), weights))
     edges = sampling.sample_pdf(keys[index + 1], edges, weights, count, training)
   sample_shape = edges.shape[:-1] + (edges.shape[-1] - 1,)
   directions = jnp.broadcast_to(rays.directions[..., None, :], sample_shape + (3,))
   appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
   density, rgb = model.field.apply({"params": params["field"]}, points_of(edges), directions,
                                    appearance)
-  edges = _finish_edges(model, edges)
-  outputs = volume.volume_render(density, rgb, edges, rays.cos_to_optical_axis, model.background)
-  outputs["ray_complete"] = jnp.ones(rays.shape, bool)
   samples = sum(capacity.proposal_samples) + capacity.samples_per_ray
-  return outputs, {"proposals": proposals, "edges": edges,
-                   "samples_evaluated": jnp.int32(samples * rays.shape[0])}
+  return ((density, rgb, finished(edges)), jnp.ones(rays.shape, bool),
+          {"proposals": proposals, "samples_evaluated": jnp.int32(samples * rays.shape[0])})

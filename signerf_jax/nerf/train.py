@@ -136,17 +136,23 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
 
 def init_state(model: nerf_model.NerfModel, config: TrainConfig, init_variables=None
                ) -> TrainState:
-  """A fresh state, or one starting from `init_variables` (fine-tuning) with a new optimizer.
+  """A fresh state, or one starting from `init_variables` with a new optimizer.
 
-  Fine-tuning starts from an empty occupancy grid (all cells sampled until the warm-up ends):
-  edited images may put content where the old scene was empty, and the old grid would never
-  sample it.
+  `init_variables` may hold "params" (fine-tuning starts from them) and, for an edit region,
+  "original" (the frozen original scene); what it lacks is freshly initialised. Fine-tuning
+  starts from an empty occupancy grid (all cells sampled until the warm-up ends): edited images
+  may put content where the old scene was empty, and the old grid would never sample it.
   """
   key = jax.random.PRNGKey(config.seed)
   init_key, run_key = jax.random.split(key)
   variables = nerf_model.init_variables(model, init_key)
   if init_variables is not None:
-    variables = {**variables, "params": jax.tree.map(jnp.asarray, init_variables["params"])}
+    given = {name: jax.tree.map(jnp.asarray, init_variables[name])
+             for name in ("params", "original") if name in init_variables}
+    if "original" in given and model.edit_region is None:
+      raise InputError("original-scene variables given for a model without an edit region",
+                       field="init_variables")
+    variables = {**variables, **given}
   optimizer_state = make_optimizer(config).init(variables["params"])
   return TrainState(jnp.int32(0), variables, optimizer_state, run_key)
 
@@ -177,10 +183,10 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     ray_weights = pixel_weight * outputs["ray_complete"]
     mse = losses.weighted_mse(outputs["rgb"], target, ray_weights)
     loss = mse + config.distortion_loss_weight * losses.distortion_loss(
-        aux["edges"], outputs["weights"], model.scene.extent, ray_weights)
+        aux["edges"], aux["weights"], model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
-          aux["edges"], outputs["weights"], aux["proposals"], ray_weights)
+          aux["edges"], aux["weights"], aux["proposals"], ray_weights)
     statistics = {"loss": loss, "mse": mse, "samples": aux["samples_evaluated"],
                   "complete_fraction": jnp.mean(outputs["ray_complete"])}
     return loss, statistics
@@ -324,6 +330,7 @@ def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
   files.write_json(Path(run_dir) / MODEL_FILE, {
       "scene": dataclasses.asdict(model.scene),
       "capacity": dataclasses.asdict(model.capacity),
+      "edit_region": model.edit_region,
       "dataset": dataset.summary(),
       "data_options": dict(data_options or {}),
   })
@@ -335,8 +342,9 @@ def read_model_file(run_dir: str | os.PathLike) -> tuple[nerf_model.NerfModel, d
   description = files.read_json(path)
   try:
     model = nerf_model.NerfModel(SceneInfo.from_json(description["scene"]),
-                                 Capacity.from_json(description["capacity"]))
-  except (KeyError, TypeError) as error:
+                                 Capacity.from_json(description["capacity"]),
+                                 description.get("edit_region"))
+  except (KeyError, TypeError, ValueError, InputError) as error:
     raise InputError(f"malformed model description ({error})", path) from None
   return model, description
 

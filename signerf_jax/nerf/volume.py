@@ -98,3 +98,47 @@ def volume_render(densities, rgbs, edges, cos_to_optical_axis, background=None):
       "median_depth": median_distance * cos_to_optical_axis,
       "weights": weights,
   }
+
+
+def merge_samples(outer, inner, t_in, t_out):
+  """The samples of two fields along the same rays as one set of intervals: the `inner` field's
+  inside (t_in, t_out), the `outer` field's everywhere else.
+
+  The merged edges are all edges of both plus t_in and t_out, so every merged interval lies
+  within one interval of each field (or outside a field's range, where its density is 0).
+
+  Args:
+    outer, inner: (densities [..., M], rgbs [..., M, 3], edges [..., M + 1]) as
+      `volume_render` takes them (M may differ between the two).
+    t_in, t_out: [...] the inner field's stretch of each ray (t_in == t_out: none).
+  Returns:
+    densities [..., M_outer + M_inner + 3], rgbs [..., M_outer + M_inner + 3, 3] and
+    edges [..., M_outer + M_inner + 4]; gradients flow to both fields' densities and colours.
+  """
+  boundaries = jnp.stack([t_in, t_out], axis=-1)
+  candidates = jnp.concatenate([outer[2], inner[2], boundaries], axis=-1)
+  # 0: outer edge, 1: inner edge, 2: boundary.
+  labels = jnp.concatenate([jnp.full(array.shape, label, jnp.int32) for label, array in
+                            enumerate((outer[2], inner[2], boundaries))], axis=-1)
+  order = jnp.argsort(jax.lax.stop_gradient(candidates), axis=-1, stable=True)
+  edges = jax.lax.stop_gradient(jnp.take_along_axis(candidates, order, axis=-1))
+  labels = jnp.take_along_axis(labels, order, axis=-1)
+  centres = 0.5 * (edges[..., 1:] + edges[..., :-1])
+
+  def lookup(field, label):
+    """The field's density and colour on each merged interval: the merged interval after the
+    k-th of the field's edges lies in the field's interval k - 1 (if k is in 1..M)."""
+    densities, rgbs, field_edges = field
+    passed = jnp.cumsum(labels == label, axis=-1)[..., :-1]
+    index = jnp.clip(passed - 1, 0, densities.shape[-1] - 1)
+    covered = (passed >= 1) & (passed < field_edges.shape[-1])
+    density = jnp.where(covered, jnp.take_along_axis(densities, index, axis=-1), 0.0)
+    rgb = jnp.take_along_axis(rgbs, index[..., None], axis=-2)
+    return density, rgb
+
+  outer_density, outer_rgb = lookup(outer, 0)
+  inner_density, inner_rgb = lookup(inner, 1)
+  inside = (centres > t_in[..., None]) & (centres < t_out[..., None])
+  densities = jnp.where(inside, inner_density, outer_density)
+  rgbs = jnp.where(inside[..., None], inner_rgb, outer_rgb)
+  return densities, rgbs, edges

@@ -22,11 +22,13 @@ SCENE = {"free_spot": {"center": [0.2, -0.3, 0.0], "radius": 0.3}, "up": [0.0, 0
 @pytest.fixture(scope="module")
 def ablations_module():
   # Registered before it runs: its dataclasses resolve their annotations through sys.modules
-  # (and its gin configurable must be registered once only).
+  # (and its gin configurable must be registered once only, also after an earlier test left
+  # the gin config finalized, i.e. locked).
   if "ablations" not in sys.modules:
     spec = importlib.util.spec_from_file_location("ablations", SCRIPT)
     sys.modules["ablations"] = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sys.modules["ablations"])
+    with gin.unlock_config():
+      spec.loader.exec_module(sys.modules["ablations"])
   return sys.modules["ablations"]
 
 
@@ -64,7 +66,8 @@ def test_the_baseline_is_one_edit_whichever_ablation_lists_it(ablations_module, 
   by_name = {name: {variant.name: variant for variant in ablation.variants} for name, ablation
              in ablations_module.ablations(ablations_module.AblationConfig()).items()}
   baselines = [by_name["propagation"]["baseline"], by_name["controlnet_scale"]["scale_1"],
-               by_name["sheet_layout"]["2x3"], by_name["crops"]["crops"]]
+               by_name["sheet_layout"]["2x3"], by_name["crops"]["crops"],
+               by_name["nerf_update"]["finetune_region"]]
   keys = {edit_key(tmp_path, variant.bindings) for variant in baselines}
   assert len(keys) == 1
   assert edit_key(tmp_path, by_name["crops"]["full_frames"].bindings) not in keys

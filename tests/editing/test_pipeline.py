@@ -8,10 +8,11 @@ import gin
 import numpy as np
 import pytest
 
-from signerf_jax import configs, files
+from signerf_jax import camera, configs, files
 from signerf_jax.data import load_dataset
 from signerf_jax.editing import pipeline
 from signerf_jax.errors import InputError
+from signerf_jax.nerf import render, sampling
 
 
 def bindings(scene_dir: Path, model: Path, scene: dict, **overrides) -> list[str]:
@@ -79,6 +80,34 @@ def test_the_edited_dataset_keeps_unmasked_pixels_and_records_its_provenance(fin
   assert provenance["prompt"] == "a red cow" and provenance["sheet"] == "0"
 
 
+def region_hits(model, cameras) -> np.ndarray:
+  """[N, H, W] bool: the pixels whose rays cross the model's edit region."""
+  hits = []
+  for index in range(cameras.num_cameras):
+    rays = camera.image_rays(cameras, index)
+    hits.append(np.asarray(sampling.intersect_aabb(
+        rays.origins, rays.directions, np.asarray(model.edit_region, np.float32))[2]))
+  return np.stack(hits)
+
+
+def test_the_edited_nerf_changes_only_the_grown_selection_box(finished_edit):
+  directory, lines, chosen = finished_edit
+  configs.parse_gin([], chosen)
+  run = pipeline.EditRun(directory, progress=False)
+  original, edited = run.nerf(0), run.nerf(1)
+  lower, upper = np.asarray(edited.model.edit_region)
+  selection_lower, selection_upper = run.selection.bounds
+  assert np.all(lower < selection_lower) and np.all(upper > selection_upper)
+  assert edited.model.original == original.model
+  assert "inside the box" in stage_lines(lines, "finetune")[-1]
+  cameras = run.eval_cameras
+  before = render.render_cameras(original.model, original.variables, cameras)["rgb"]
+  after = render.render_cameras(edited.model, edited.variables, cameras)["rgb"]
+  missed = ~region_hits(edited.model, cameras)
+  assert missed.any() and not missed.all()
+  np.testing.assert_allclose(after[missed], before[missed], atol=1e-6)
+
+
 def test_a_rerun_skips_finished_stages_and_a_new_sheet_redoes_only_what_follows(finished_edit):
   directory, _, chosen = finished_edit
   configs.parse_gin([], chosen)
@@ -100,3 +129,15 @@ def test_an_unknown_stage_is_an_error_naming_the_stages(finished_edit):
   configs.parse_gin([], chosen)
   with pytest.raises(InputError, match="unknown stage 'sheets'.*update"):
     pipeline.run_edit(directory, until="sheets", progress=False, log=lambda line: None)
+
+
+def test_without_an_edit_region_the_whole_nerf_is_fine_tuned(finished_edit):
+  directory, _, chosen = finished_edit
+  configs.parse_gin([], chosen)  # Back to the fixture's edit (earlier tests may change it).
+  pipeline.run_edit(directory, until="finetune", progress=False, log=lambda line: None)
+  configs.parse_gin([], chosen + ["FinetuneConfig.edit_region = False"])
+  lines = []
+  pipeline.run_edit(directory, until="finetune", progress=False, log=lines.append)
+  redone = {line.split("] ")[1].split(":")[0] for line in lines if "done before" not in line}
+  assert redone == {"finetune"}, lines
+  assert pipeline.EditRun(directory, progress=False).nerf(1).model.edit_region is None

@@ -1,0 +1,194 @@
+"""Edit regions: a trained field inside a box, composited over the frozen original field.
+
+The merge of two fields' samples (`volume.merge_samples`) against closed forms, on the hard
+cases (rays missing the region, a region spanning the whole ray, zero and huge densities); and
+a model with an edit region trained on the sphere scene: rays missing the box render as the
+original does (to float rounding), the original stays frozen, nothing recompiles, and a saved
+run loads back.
+"""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from small_nerf import SMALL_CONFIG, count_compilations, small_model
+
+from signerf_jax import camera
+from signerf_jax.errors import InputError
+from signerf_jax.nerf import capacity, evaluate, render, sampling, train, volume
+from signerf_jax.nerf import model as nerf_model
+
+BACKGROUND = jnp.array([0.2, 0.4, 0.6])
+OUTER_COLOR, INNER_COLOR = 0.25, 0.75
+
+
+def constant_field(start, stop, intervals, density, color):
+  """One ray's samples of a field of constant density and grey level on [start, stop]."""
+  edges = jnp.linspace(start, stop, intervals + 1)[None]
+  return (jnp.full((1, intervals), density, jnp.float32),
+          jnp.full((1, intervals, 3), color, jnp.float32), edges)
+
+
+def merged_render(outer_density, inner_density, t_in, t_out, inner_range=None):
+  outer = constant_field(0.0, 10.0, 10, outer_density, OUTER_COLOR)
+  inner = constant_field(*(inner_range or (t_in, t_out)), 7, inner_density, INNER_COLOR)
+  samples = volume.merge_samples(outer, inner, jnp.array([t_in]), jnp.array([t_out]))
+  return volume.volume_render(*samples, jnp.ones(1), BACKGROUND), samples
+
+
+@pytest.mark.parametrize("outer_density", [0.0, 0.1, 1e10])
+@pytest.mark.parametrize("inner_density", [0.0, 0.3, 1e10])
+@pytest.mark.parametrize("t_in, t_out", [(3.0, 5.5), (0.0, 10.0), (2.5, 2.5), (10.0, 10.0)])
+def test_merged_samples_match_the_closed_form(outer_density, inner_density, t_in, t_out):
+  outputs, _ = merged_render(outer_density, inner_density, t_in, t_out)
+  # Piecewise constant densities: light passes [0, t_in] and [t_out, 10] of the outer field,
+  # [t_in, t_out] of the inner one.
+  before, inside, after = t_in, t_out - t_in, 10.0 - t_out
+  transmit = lambda density, length: np.exp(-min(density * length, 1e6))
+  through_before = transmit(outer_density, before)
+  through_inside = transmit(inner_density, inside)
+  expected = ((1 - through_before) * OUTER_COLOR
+              + through_before * (1 - through_inside) * INNER_COLOR
+              + through_before * through_inside * (1 - transmit(outer_density, after))
+              * OUTER_COLOR
+              + through_before * through_inside * transmit(outer_density, after)
+              * np.asarray(BACKGROUND))
+  np.testing.assert_allclose(outputs["rgb"][0], expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("inner_density", [0.0, 1e-6, 1.0, 1e10])
+def test_merge_gradients_are_finite_and_reach_only_the_inner_field_inside(inner_density):
+  outer = constant_field(0.0, 10.0, 10, 0.05, OUTER_COLOR)
+  inner = constant_field(3.0, 5.5, 5, inner_density, INNER_COLOR)
+  t_in, t_out = jnp.array([3.0]), jnp.array([5.5])
+
+  def rendered(outer_fields, inner_fields):
+    samples = volume.merge_samples((*outer_fields, outer[2]), (*inner_fields, inner[2]), t_in,
+                                   t_out)
+    return jnp.sum(volume.volume_render(*samples, jnp.ones(1), BACKGROUND)["rgb"])
+
+  outer_gradients, inner_gradients = jax.grad(rendered, argnums=(0, 1))(outer[:2], inner[:2])
+  for gradient in jax.tree.leaves((outer_gradients, inner_gradients)):
+    assert np.all(np.isfinite(gradient))
+  # Outer intervals 3 and 4 ([3, 4], [4, 5]) lie inside the region: they cannot matter.
+  np.testing.assert_array_equal(outer_gradients[0][0, 3:5], 0.0)
+  assert any(np.any(gradient != 0) for gradient in inner_gradients)
+
+
+def test_a_ray_missing_the_region_keeps_the_outer_fields_samples_exactly():
+  outer = constant_field(0.0, 10.0, 10, 0.2, OUTER_COLOR)
+  alone = volume.volume_render(*outer, jnp.ones(1), BACKGROUND)
+  outputs, samples = merged_render(0.2, 1e10, 10.0, 10.0)
+  for name in ("rgb", "accumulation", "depth", "median_depth"):
+    np.testing.assert_array_equal(outputs[name], alone[name], err_msg=name)
+  assert samples[2].shape == (1, 11 + 8 + 2)
+
+
+# ------------------------------------------------------------------------------------------------
+# A model with an edit region on the sphere scene.
+
+REGION = ((0.0, -0.6, -0.6), (0.6, 0.6, 0.6))  # The sphere's +x half (radius 0.5).
+RED = np.array([1.0, 0.0, 0.0], np.float32)
+
+
+@pytest.fixture(scope="module")
+def edited(sphere):
+  """The original NeRF (briefly trained) and an edit region trained on red-sphere images."""
+  model = small_model(sphere)
+  original = train.make_trainer(sphere, model=model, config=SMALL_CONFIG)
+  original.run(until_step=60, progress=False)
+  original_variables = jax.device_get(original.state.variables)
+  red = dataclasses.replace(sphere, images=np.where(sphere.depths[..., None] > 0, RED,
+                                                    sphere.images))
+  region_model = dataclasses.replace(model, edit_region=REGION)
+  trainer = train.make_trainer(red, model=region_model, config=SMALL_CONFIG,
+                               init_variables={"original": original_variables})
+  trainer.run(until_step=40, progress=False)
+  return model, original_variables, trainer
+
+
+def region_hits(cameras, index):
+  rays = camera.image_rays(cameras, index)
+  _, _, hit = sampling.intersect_aabb(rays.origins, rays.directions,
+                                      np.asarray(REGION, np.float32))
+  return np.asarray(hit)
+
+
+def test_only_the_region_changes_and_the_original_stays_frozen(sphere, edited):
+  model, original_variables, trainer = edited
+  cameras = sphere.cameras.take([0, 4])
+  before = render.render_cameras(model, original_variables, cameras)
+  after = render.render_cameras(trainer.model, trainer.state.variables, cameras)
+  for view in range(2):
+    missed = ~region_hits(cameras, view)
+    assert missed.any() and (~missed).any()
+    np.testing.assert_allclose(after["rgb"][view][missed], before["rgb"][view][missed],
+                               atol=1e-6)
+    np.testing.assert_allclose(after["depth"][view][missed], before["depth"][view][missed],
+                               rtol=1e-5)
+    inside = ~missed & (sphere.depths[[0, 4]][view] > 0)
+    red = after["rgb"][view][inside].mean(0)
+    assert red[0] > 0.8 and red[1:].max() < 0.3, red
+  for kept, given in zip(jax.tree.leaves(trainer.state.variables["original"]),
+                         jax.tree.leaves(original_variables)):
+    np.testing.assert_array_equal(kept, given)
+
+
+def test_training_an_edit_region_compiles_once(sphere, edited):
+  _, _, trainer = edited
+  trainer.run(until_step=trainer.step + 5, progress=False)
+  with count_compilations() as compiled:
+    trainer.run(until_step=trainer.step + 4, progress=False)
+  assert compiled == []
+  assert np.isfinite(trainer.last_statistics["loss"])
+
+
+def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
+  model, original_variables, trainer = edited
+  train.write_model_file(tmp_path, trainer.model, sphere)
+  trainer.save(tmp_path)
+  loaded = evaluate.load_run(tmp_path)
+  assert loaded.model == trainer.model and loaded.model.edit_region == REGION
+  cameras = sphere.cameras.take([2])
+  np.testing.assert_array_equal(
+      render.render_cameras(loaded.model, loaded.variables, cameras)["rgb"],
+      render.render_cameras(trainer.model, trainer.state.variables, cameras)["rgb"])
+  description = json.loads((tmp_path / train.MODEL_FILE).read_text())
+  description["edit_region"] = [[0, 0, 0], [0, 1, 1]]
+  (tmp_path / train.MODEL_FILE).write_text(json.dumps(description))
+  with pytest.raises(InputError, match="model.json"):
+    train.read_model_file(tmp_path)
+
+
+def test_the_proposal_sampler_keeps_rays_missing_the_region_too(sphere):
+  dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
+  scene = capacity.SceneInfo.from_dataset(dataset)
+  derived = capacity.derive_capacity(scene, samples_per_batch=4096)
+  model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
+                                                          samples_per_ray=8, mlp_width=32))
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  region_model = dataclasses.replace(model, edit_region=REGION)
+  region_variables = {**nerf_model.init_variables(region_model, jax.random.PRNGKey(1)),
+                      "original": variables}
+  cameras = dataset.cameras.take([1])
+  before = render.render_cameras(model, variables, cameras)["rgb"][0]
+  after = render.render_cameras(region_model, region_variables, cameras)["rgb"][0]
+  missed = ~region_hits(cameras, 0)
+  np.testing.assert_allclose(after[missed], before[missed], atol=1e-6)
+  assert not np.allclose(after[~missed], before[~missed])
+
+
+@pytest.mark.parametrize("region", [((0, 0, 0), (0, 1, 1)), ((1, 1, 1), (0, 0, 0))])
+def test_an_empty_region_is_an_error(sphere, region):
+  with pytest.raises(InputError, match="edit region"):
+    dataclasses.replace(small_model(sphere), edit_region=region)
+
+
+def test_original_variables_need_an_edit_region(sphere):
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  with pytest.raises(InputError, match="without an edit region"):
+    train.init_state(model, SMALL_CONFIG, {"params": variables["params"], "original": variables})
