@@ -102,6 +102,11 @@ def print_summary(result: dict) -> None:
   print(f"shape adherence   {verdict('shape_adherence')}  mean IoU by ControlNet scale {ious} "
         f"(ceiling {shape['segmentation_ceiling_iou']:.3f}; >= "
         f"{gates['shape_adherence']['threshold']} at 1, rising)")
+  by_hue = shape["by_caption_hue"]
+  print(f"  (not a gate)    found by the caption's hue ({by_hue['samples']} views): "
+        + ", ".join(f"{scale:g}: {iou:.3f}" for scale, iou in
+                    zip(shape["controlnet_scales"], by_hue["mean_iou"]))
+        + f" (ceiling {by_hue['segmentation_ceiling_iou']:.3f})")
   agreement = consistency["agreement"]
   print(f"consistency       {verdict('consistency')}  colour agreement over "
         f"{consistency['sheets']} sheets: sheet {agreement['sheet']:.3f}, slot update "

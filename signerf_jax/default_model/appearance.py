@@ -133,6 +133,36 @@ def _palette_hues() -> dict[str, float]:
           if name not in ACHROMATIC_COLORS}
 
 
+def pixel_hue_colors(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Each pixel's nearest chromatic palette colour by hue (hue is unchanged by white light).
+
+  Args:
+    rgb: [..., 3] colours in [0, 1].
+  Returns:
+    chromatic: [...] bool, saturated and bright enough for its hue to mean something;
+    nearest: [...] index into `chromatic_colors()` of the palette hue nearest to the pixel's.
+  """
+  rgb = np.asarray(rgb, np.float64)
+  value = rgb.max(-1)
+  chroma = value - rgb.min(-1)
+  chromatic = (chroma / np.maximum(value, 1e-6) > CHROMATIC_SATURATION) & (
+      value > CHROMATIC_MIN_VALUE)
+  red, green, blue = np.moveaxis(rgb, -1, 0)
+  safe_chroma = np.maximum(chroma, 1e-12)
+  # Hue in [0, 1) as colorsys defines it, vectorised.
+  hue = np.where(value == red, (green - blue) / safe_chroma,
+                 np.where(value == green, 2.0 + (blue - red) / safe_chroma,
+                          4.0 + (red - green) / safe_chroma))
+  hue = np.mod(hue / 6.0, 1.0)
+  gap = np.abs(hue[..., None] - np.asarray(list(_palette_hues().values())))
+  return chromatic, np.argmin(np.minimum(gap, 1.0 - gap), -1)
+
+
+def chromatic_colors() -> tuple[str, ...]:
+  """The palette colours with a hue (`pixel_hue_colors`' indices)."""
+  return tuple(_palette_hues())
+
+
 def dominant_color(rgb: np.ndarray) -> str:
   """The PALETTE colour an object's pixels show most, robust to shading.
 
@@ -140,23 +170,12 @@ def dominant_color(rgb: np.ndarray) -> str:
     rgb: [P, 3] the object's pixel colours in [0, 1] (P >= 1).
   Returns:
     For mostly saturated pixels, the chromatic palette colour whose hue is nearest to most of
-    them (hue is unchanged by white light); otherwise "white" or "black" by the value of the
-    brighter pixels.
+    them (`pixel_hue_colors`); otherwise "white" or "black" by the value of the brighter pixels.
   """
   rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
-  value = rgb.max(-1)
-  saturation = (value - rgb.min(-1)) / np.maximum(value, 1e-6)
-  chromatic = (saturation > CHROMATIC_SATURATION) & (value > CHROMATIC_MIN_VALUE)
+  chromatic, nearest = pixel_hue_colors(rgb)
   if chromatic.mean() < 0.5:
+    value = rgb.max(-1)
     return "white" if np.percentile(value, WHITE_PERCENTILE) > WHITE_MIN_VALUE else "black"
-  red, green, blue = rgb[chromatic].T
-  maximum, chroma = value[chromatic], value[chromatic] - rgb[chromatic].min(-1)
-  # Hue in [0, 1) as colorsys defines it, vectorised.
-  hue = np.where(maximum == red, (green - blue) / chroma,
-                 np.where(maximum == green, 2.0 + (blue - red) / chroma, 4.0 + (red - green) / chroma))
-  hue = np.mod(hue / 6.0, 1.0)
-  names, palette_hues = zip(*_palette_hues().items())
-  gap = np.abs(hue[:, None] - np.asarray(palette_hues)[None])
-  gap = np.minimum(gap, 1.0 - gap)
-  votes = np.bincount(np.argmin(gap, -1), minlength=len(names))
-  return names[int(np.argmax(votes))]
+  votes = np.bincount(nearest[chromatic], minlength=len(chromatic_colors()))
+  return chromatic_colors()[int(np.argmax(votes))]

@@ -61,6 +61,20 @@ def test_segmentation_threshold_is_per_channel(threshold, expected):
   assert found[0, 3, 3] == expected
 
 
+def test_hue_segmentation_finds_the_named_colour_and_ignores_repainted_ground():
+  generated, _, mask, silhouette = scene_with_object()
+  generated[9, 11] = RED  # No pinhole: hue segmentation does not look at the ground.
+  generated[1:22, 16:19] = striped_ground()[1:22, 16:19] + 0.2  # Ground repainted lighter.
+  found = evaluation.segment_by_hue(generated[None], mask[None], ["red"],
+                                    min_component_pixels=4)
+  np.testing.assert_array_equal(found[0], silhouette)
+  assert not evaluation.segment_by_hue(generated[None], mask[None], ["blue"], 4).any()
+  # The difference segmentation counts the repainted ground as object.
+  by_difference = evaluation.segment_objects(generated[None], striped_ground()[None],
+                                             mask[None], 0.1, 4)
+  assert by_difference[0, 5, 17] and not found[0, 5, 17]
+
+
 def test_segmentation_recovers_rendered_objects(tiny_sampling):
   """On true renders (a perfect generator) the IoU with the silhouette is near 1."""
   ious = []
