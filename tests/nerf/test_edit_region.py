@@ -17,6 +17,7 @@ import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
 from signerf_jax import camera
+from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import capacity, evaluate, render, sampling, train, volume
 from signerf_jax.nerf import model as nerf_model
@@ -192,3 +193,8 @@ def test_original_variables_need_an_edit_region(sphere):
   variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
   with pytest.raises(InputError, match="without an edit region"):
     train.init_state(model, SMALL_CONFIG, {"params": variables["params"], "original": variables})
+
+
+def test_a_negative_region_margin_is_an_error_naming_the_setting():
+  with pytest.raises(InputError, match="FinetuneConfig.region_margin"):
+    FinetuneConfig(region_margin=-0.1)
