@@ -44,6 +44,10 @@ PALETTE: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]
 }
 COLORS = tuple(PALETTE)
 ACHROMATIC_COLORS = ("white", "black")
+# The palette colours with a hue, and their base colours' hues in [0, 1) (`pixel_hue_colors`).
+CHROMATIC_COLORS = tuple(name for name in COLORS if name not in ACHROMATIC_COLORS)
+CHROMATIC_HUES = np.asarray([colorsys.rgb_to_hsv(*PALETTE[name][0])[0]
+                             for name in CHROMATIC_COLORS])
 PATTERNS = ("plain", "striped", "checkered", "spotted")
 
 STRIPE_PERIOD = 0.55
@@ -128,11 +132,6 @@ def random_appearance(rng: np.random.Generator, color: str, pattern: str) -> App
                     offset=rng.uniform(-1.0, 1.0, 3), scale=float(rng.uniform(*PATTERN_SCALE_RANGE)))
 
 
-def _palette_hues() -> dict[str, float]:
-  return {name: colorsys.rgb_to_hsv(*base)[0] for name, (base, _) in PALETTE.items()
-          if name not in ACHROMATIC_COLORS}
-
-
 def pixel_hue_colors(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   """Each pixel's nearest chromatic palette colour by hue (hue is unchanged by white light).
 
@@ -140,7 +139,7 @@ def pixel_hue_colors(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rgb: [..., 3] colours in [0, 1].
   Returns:
     chromatic: [...] bool, saturated and bright enough for its hue to mean something;
-    nearest: [...] index into `chromatic_colors()` of the palette hue nearest to the pixel's.
+    nearest: [...] index into `CHROMATIC_COLORS` of the palette hue nearest to the pixel's.
   """
   rgb = np.asarray(rgb, np.float64)
   value = rgb.max(-1)
@@ -154,13 +153,8 @@ def pixel_hue_colors(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                  np.where(value == green, 2.0 + (blue - red) / safe_chroma,
                           4.0 + (red - green) / safe_chroma))
   hue = np.mod(hue / 6.0, 1.0)
-  gap = np.abs(hue[..., None] - np.asarray(list(_palette_hues().values())))
+  gap = np.abs(hue[..., None] - CHROMATIC_HUES)
   return chromatic, np.argmin(np.minimum(gap, 1.0 - gap), -1)
-
-
-def chromatic_colors() -> tuple[str, ...]:
-  """The palette colours with a hue (`pixel_hue_colors`' indices)."""
-  return tuple(_palette_hues())
 
 
 def dominant_color(rgb: np.ndarray) -> str:
@@ -177,5 +171,5 @@ def dominant_color(rgb: np.ndarray) -> str:
   if chromatic.mean() < 0.5:
     value = rgb.max(-1)
     return "white" if np.percentile(value, WHITE_PERCENTILE) > WHITE_MIN_VALUE else "black"
-  votes = np.bincount(nearest[chromatic], minlength=len(chromatic_colors()))
-  return chromatic_colors()[int(np.argmax(votes))]
+  votes = np.bincount(nearest[chromatic], minlength=len(CHROMATIC_COLORS))
+  return CHROMATIC_COLORS[int(np.argmax(votes))]

@@ -191,13 +191,13 @@ def segment_by_hue(generated: np.ndarray, masks: np.ndarray, colors: Sequence[st
 
   Args:
     generated: [N, H, W, 3] in [0, 1]; masks: [N, H, W] (>= 0.5: regenerated).
-    colors: N chromatic palette colour names (`appearance.chromatic_colors()`).
+    colors: N chromatic palette colour names (`appearance.CHROMATIC_COLORS`).
     min_component_pixels: smaller components are dropped, smaller holes filled.
   Returns:
     [N, H, W] bool.
   """
   chromatic, nearest = appearance.pixel_hue_colors(generated)
-  named = np.asarray([appearance.chromatic_colors().index(color) for color in colors])
+  named = np.asarray([appearance.CHROMATIC_COLORS.index(color) for color in colors])
   inside = np.asarray(masks) >= 0.5
   return _without_specks(chromatic & (nearest == named[:, None, None]) & inside,
                          min_component_pixels) & inside
@@ -472,7 +472,7 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
   # The same objects found by their caption's hue, where it names one (not a gate).
   named_colors = [captions_lib.parse_caption(caption).color for caption in views.captions]
   hue_views = [index for index, color in enumerate(named_colors)
-               if color in appearance.chromatic_colors()]
+               if color in appearance.CHROMATIC_COLORS]
 
   def hue_iou(images: np.ndarray) -> float:
     if not hue_views:
