@@ -102,6 +102,15 @@ def print_summary(result: dict) -> None:
   print(f"shape adherence   {verdict('shape_adherence')}  mean IoU by ControlNet scale {ious} "
         f"(ceiling {shape['segmentation_ceiling_iou']:.3f}; >= "
         f"{gates['shape_adherence']['threshold']} at 1, rising)")
+  per_scale = lambda values: ", ".join(f"{value:.3f}" for value in values)
+  print(f"  (not a gate)    pooled precision {per_scale(shape['pooled_precision'])}; recall "
+        f"{per_scale(shape['pooled_recall'])}; masked ground changed "
+        f"{per_scale(shape['changed_ground_share'])}")
+  proxy = shape["with_proxy_masks"]
+  print(f"  (not a gate)    with the pipeline's proxy masks: mean IoU "
+        f"{per_scale(proxy['mean_iou'])} (ceiling {proxy['segmentation_ceiling_iou']:.3f}); "
+        f"precision {per_scale(proxy['pooled_precision'])}; recall "
+        f"{per_scale(proxy['pooled_recall'])}")
   by_hue = shape["by_caption_hue"]
   print(f"  (not a gate)    found by the caption's hue ({by_hue['samples']} views): "
         + ", ".join(f"{scale:g}: {iou:.3f}" for scale, iou in

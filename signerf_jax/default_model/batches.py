@@ -1,9 +1,10 @@
 """Model inputs from the default model's data: inpainting masks, control depth and sheets.
 
 Inputs of the inpainting UNet + ControlNet, per single view or per sheet (all float32, images in
-[0, 1]): image [.., 3], mask [.., 1], masked_image = image * (1 - mask) [.., 3] and control
-[.., 1] (normalised inverse depth, near = 1, far = 0). Because every mask kind covers the whole
-visible object and the renderer casts no shadows, the masked image equals the object-free
+[0, 1]): image [.., 3], mask [.., 1], masked_image = image * (1 - mask) [.., 3], control
+[.., 1] (normalised inverse depth, near = 1, far = 0) and object [.., 1] (the visible silhouette:
+training weighs the masked ground apart from the masked object). Because every mask kind covers
+the whole visible object and the renderer casts no shadows, the masked image equals the object-free
 `background_rgb` times (1 - mask): the model never sees the object it is to paint.
 
 Mask kinds (`mask_kinds(dilation_radii)`), from exact to coarse:
@@ -90,9 +91,14 @@ def control(arrays: dict[str, np.ndarray]) -> jax.Array:
   return normalised.reshape(depth.shape)
 
 
-def _inputs(image, mask, control_map) -> dict[str, jax.Array]:
+def _inputs(image, mask, control_map, object_pixels) -> dict[str, jax.Array]:
   return {"image": image, "mask": mask, "masked_image": image * (1.0 - mask),
-          "control": control_map}
+          "control": control_map, "object": object_pixels}
+
+
+def _silhouettes(arrays: dict[str, np.ndarray]) -> jax.Array:
+  """[S, V, H, W, 1] float32 visible silhouettes."""
+  return (jnp.asarray(arrays["silhouette"]) > 0).astype(jnp.float32)[..., None]
 
 
 def single_view_inputs(arrays: dict[str, np.ndarray], masks) -> dict[str, jax.Array]:
@@ -101,22 +107,25 @@ def single_view_inputs(arrays: dict[str, np.ndarray], masks) -> dict[str, jax.Ar
     raise InputError(f"single views have 1 view per sample, got {arrays['rgb'].shape[1]}",
                      field="rgb")
   image = jnp.asarray(arrays["rgb"][:, 0], jnp.float32) / 255.0
-  return _inputs(image, jnp.asarray(masks)[:, 0, ..., None], control(arrays)[:, 0, ..., None])
+  return _inputs(image, jnp.asarray(masks)[:, 0, ..., None], control(arrays)[:, 0, ..., None],
+                 _silhouettes(arrays)[:, 0])
 
 
 @functools.partial(jax.jit, static_argnames=("layout", "mode"))
-def _sheet(rgb, mask, control_map, layout: sheet_lib.SheetLayout, mode: str):
-  """One sample's views [V, h, w, C] -> (image, mask, control) sheets."""
+def _sheet(rgb, mask, control_map, silhouette, layout: sheet_lib.SheetLayout, mode: str):
+  """One sample's views [V, h, w, C] -> (image, mask, control, object) sheets."""
   tiles = lambda views: views[:layout.num_tiles]
+  assemble = lambda views, is_mask=False: sheet_lib.assemble(tiles(views), views[-1], layout,
+                                                            is_mask=is_mask)
+  # Every view's silhouette, whatever the mode: it only matters where the mask is.
+  object_sheet = assemble(silhouette, True)
   if mode == "reference_sheet":
     image, control_sheet, mask_sheet = sheet_lib.reference_sheet_inputs(
         tiles(rgb), tiles(control_map), tiles(mask), layout)
-    return image, mask_sheet, control_sheet
+    return image, mask_sheet, control_sheet, object_sheet
   if mode == "slot_update":
     mask = mask.at[:layout.num_tiles].set(0.0)
-  assemble = lambda views, is_mask=False: sheet_lib.assemble(tiles(views), views[-1], layout,
-                                                            is_mask=is_mask)
-  return assemble(rgb), assemble(mask, True), assemble(control_map)
+  return assemble(rgb), assemble(mask, True), assemble(control_map), object_sheet
 
 
 def sheet_inputs(arrays: dict[str, np.ndarray], masks, layout: sheet_lib.SheetLayout,
@@ -137,6 +146,8 @@ def sheet_inputs(arrays: dict[str, np.ndarray], masks, layout: sheet_lib.SheetLa
                      f"{layout.num_tiles} tiles and a slot of {layout.tile_height} x "
                      f"{layout.tile_width}", field="layout")
   rgb = jnp.asarray(arrays["rgb"], jnp.float32) / 255.0
-  image, mask, control_sheet = jax.vmap(functools.partial(_sheet, layout=layout, mode=mode))(
-      rgb, jnp.asarray(masks, jnp.float32)[..., None], control(arrays)[..., None])
-  return _inputs(image, mask, control_sheet)
+  image, mask, control_sheet, object_sheet = jax.vmap(
+      functools.partial(_sheet, layout=layout, mode=mode))(
+          rgb, jnp.asarray(masks, jnp.float32)[..., None], control(arrays)[..., None],
+          _silhouettes(arrays))
+  return _inputs(image, mask, control_sheet, object_sheet)

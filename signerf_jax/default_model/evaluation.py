@@ -39,9 +39,13 @@ handles) of the small objects of 64-pixel views, which costs about 5 IoU points 
 renders, against under 1 for this. Applied to the VAE round trip of the true renders, the
 segmentation gives the shape IoU a perfect generator would reach (`segmentation_ceiling_iou`).
 
-Beside the gate, shape adherence is also reported with the object found by its caption's hue
-(`segment_by_hue`, views whose caption names a chromatic colour): the masked pixels whose hue is
-nearest that colour's (`appearance.pixel_hue_colors`), cleaned the same way. Repainted ground
+Beside the gate, shape adherence is also reported (not gates) with the pipeline's own proxy masks
+(`with_proxy_masks`: the silhouette dilated and feathered as `SelectionConfig` does for a proxy
+by default, about 3 pixels at 64; the paper inpaints the visible proxy, "further dilated", while
+the gate's boxes leave the whole shape to the depth), with where the IoU is lost (pooled
+precision and recall, and the share of masked ground pixels off by more than the threshold), and
+with the object found by its caption's hue (`segment_by_hue`, views whose caption names a
+chromatic colour): the masked pixels whose hue is nearest that colour's (`appearance.pixel_hue_colors`), cleaned the same way. Repainted ground
 and background rarely take the object's hue, so this measures the object's own silhouette where
 the difference segmentation also counts a hazy repaint of the box as object.
 """
@@ -70,6 +74,7 @@ from signerf_jax.editing import evaluation as editing_evaluation
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator, SheetInputs
 from signerf_jax.errors import InputError
+from signerf_jax.geometry import masks as masks_lib
 
 FULL_SCALE = 1.0  # The ControlNet scale of prompt adherence, consistency and the shape gate.
 KEY_PURPOSES = ("single", "sheet", "independent", "slot")
@@ -93,6 +98,8 @@ class EvaluationSettings:
     difference_threshold: a channel difference from the VAE round trip of the background above
       which a masked pixel is object (module docstring).
     min_component_pixels: smaller object components are dropped, smaller holes filled.
+    proxy_mask_dilation, proxy_mask_feather: the pipeline's proxy masks, measured beside the
+      gate (`SelectionConfig.dilation_radius`, `feather_radius`: pixels at 512 pixels).
     figure_singles, figure_sheets: samples shown in the figure.
   """
 
@@ -104,6 +111,8 @@ class EvaluationSettings:
   sheets_per_device: int = 4
   difference_threshold: float = 0.1
   min_component_pixels: int = 6
+  proxy_mask_dilation: float = 24.0
+  proxy_mask_feather: float = 8.0
   figure_singles: int = 4
   figure_sheets: int = 2
 
@@ -116,11 +125,13 @@ class EvaluationSettings:
         "sheets_per_device": self.sheets_per_device >= 1,
         "difference_threshold": 0 < self.difference_threshold < 1,
         "min_component_pixels": self.min_component_pixels >= 1,
+        "proxy_mask_dilation": self.proxy_mask_dilation >= 0,
+        "proxy_mask_feather": self.proxy_mask_feather >= 0,
     }
     for name, valid in checks.items():
       if not valid:
         raise InputError(f"invalid value {getattr(self, name)!r} (counts >= 1, scales ascending "
-                         f"and including {FULL_SCALE}, threshold in (0, 1))",
+                         f"and including {FULL_SCALE}, threshold in (0, 1), radii >= 0)",
                          field=f"default_model_evaluation.{name}")
 
 
@@ -208,6 +219,26 @@ def silhouette_iou(predicted: np.ndarray, target: np.ndarray) -> np.ndarray:
   predicted, target = np.asarray(predicted, bool), np.asarray(target, bool)
   union = np.sum(predicted | target, axis=(1, 2))
   return np.where(union > 0, np.sum(predicted & target, axis=(1, 2)) / np.maximum(union, 1), 1.0)
+
+
+def pooled_precision_recall(predicted: np.ndarray, target: np.ndarray) -> tuple[float, float]:
+  """(precision, recall) of [N, H, W] boolean silhouettes, pixels pooled over all views (NaN
+  when nothing is predicted or nothing is to be found)."""
+  predicted, target = np.asarray(predicted, bool), np.asarray(target, bool)
+  hits = float(np.sum(predicted & target))
+  ratio = lambda total: hits / total if total else float("nan")
+  return ratio(float(predicted.sum())), ratio(float(target.sum()))
+
+
+def changed_ground_share(generated: np.ndarray, reference: np.ndarray, masks: np.ndarray,
+                         silhouettes: np.ndarray, difference_threshold: float) -> float:
+  """Share of the masked pixels off the true object (the ground and background the model
+  repaints) that differ from `reference` by more than the threshold in some channel: what the
+  segmentation would count as object there before dropping specks (NaN without such pixels)."""
+  ground = (np.asarray(masks) >= 0.5) & ~np.asarray(silhouettes, bool)
+  difference = np.abs(np.asarray(generated, np.float32) - np.asarray(reference, np.float32))
+  changed = difference.max(-1) > difference_threshold
+  return float(changed[ground].mean()) if ground.any() else float("nan")
 
 
 def object_colors(images: np.ndarray, objects: np.ndarray) -> tuple[list[str | None], np.ndarray]:
@@ -457,18 +488,43 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
   keys = np.stack([evaluation_key(settings.seed, "single", index)
                    for index in range(len(views.captions))])
   reference = round_trip(generator, background)
-  segment = lambda images: segment_objects(images, reference, masks,
-                                           settings.difference_threshold,
-                                           settings.min_component_pixels)
-  generated, objects, ious = [], [], []
-  for scale in settings.controlnet_scales:
-    images = generate_with_captions(with_scale(generator, scale), views.captions, background,
-                                    masks, controls, keys, timer, "single_view")
-    generated.append(images)
-    objects.append(segment(images))
-    ious.append(silhouette_iou(objects[-1], silhouettes))
+
+  def sweep(masks: np.ndarray, task: str) -> tuple[list, list, dict]:
+    """Generations and found objects per scale under `masks`, and their shape measures."""
+    generated, objects = [], []
+    for scale in settings.controlnet_scales:
+      generated.append(generate_with_captions(with_scale(generator, scale), views.captions,
+                                              background, masks, controls, keys, timer, task))
+      objects.append(segment_objects(generated[-1], reference, masks,
+                                     settings.difference_threshold,
+                                     settings.min_component_pixels))
+    ious = [silhouette_iou(found, silhouettes) for found in objects]
+    precision_recall = [pooled_precision_recall(found, silhouettes) for found in objects]
+    return generated, objects, {
+        "mean_iou": [float(np.mean(values)) for values in ious],
+        "median_iou": [float(np.median(values)) for values in ious],
+        # Where the IoU is lost: pixels taken beside the object or object pixels missed, and
+        # how much of the repainted ground differs from the original.
+        "pooled_precision": [precision for precision, _ in precision_recall],
+        "pooled_recall": [recall for _, recall in precision_recall],
+        "changed_ground_share": [
+            changed_ground_share(images, reference, masks, silhouettes,
+                                 settings.difference_threshold) for images in generated],
+        "no_object_found": [int(np.sum(~found.any((1, 2)))) for found in objects],
+        "per_view": ious}
+
+  generated, objects, shape = sweep(masks, "single_view")
   truth_round_trip = round_trip(generator, truth)
-  ceiling = silhouette_iou(segment(truth_round_trip), silhouettes)
+  ceiling = lambda masks: float(np.mean(silhouette_iou(segment_objects(
+      truth_round_trip, reference, masks, settings.difference_threshold,
+      settings.min_component_pixels), silhouettes)))
+  # Not a gate: the same with the pipeline's own proxy-placement masks (the visible proxy,
+  # dilated and feathered as `SelectionConfig` does by default), as the paper inpaints.
+  proxy_masks = np.asarray(masks_lib.dilate_and_feather(
+      silhouettes, radius=settings.proxy_mask_dilation, feather=settings.proxy_mask_feather))
+  _, _, with_proxy_masks = sweep(proxy_masks, "single_view")
+  with_proxy_masks.pop("per_view")
+  with_proxy_masks["segmentation_ceiling_iou"] = ceiling(proxy_masks)
   # The same objects found by their caption's hue, where it names one (not a gate).
   named_colors = [captions_lib.parse_caption(caption).color for caption in views.captions]
   hue_views = [index for index, color in enumerate(named_colors)
@@ -507,12 +563,13 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
           "vae_ceiling": float(np.mean(kept_by_vae)) if kept_by_vae else float("nan")},
       "shape_adherence": {
           "samples": len(views.captions), "controlnet_scales": list(settings.controlnet_scales),
-          "mean_iou": [float(np.mean(values)) for values in ious],
-          "median_iou": [float(np.median(values)) for values in ious],
-          "mean_iou_by_view_kind": {kind: [float(np.mean(values[chosen])) for values in ious]
+          **{name: values for name, values in shape.items() if name != "per_view"},
+          "mean_iou_by_view_kind": {kind: [float(np.mean(values[chosen]))
+                                           for values in shape["per_view"]]
                                     for kind, chosen in kinds.items() if chosen.any()},
-          "no_object_found": [int(np.sum(~found.any((1, 2)))) for found in objects],
-          "segmentation_ceiling_iou": float(np.mean(ceiling)),
+          "segmentation_ceiling_iou": ceiling(masks),
+          "with_proxy_masks": {"dilation": settings.proxy_mask_dilation,
+                               "feather": settings.proxy_mask_feather, **with_proxy_masks},
           "by_caption_hue": {"samples": len(hue_views),
                              "mean_iou": [hue_iou(images) for images in generated],
                              "segmentation_ceiling_iou": hue_iou(truth_round_trip)}},

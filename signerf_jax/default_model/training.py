@@ -128,6 +128,9 @@ class DiffusionStage(StageSettings):
     caption_dropout: probability of the empty prompt (classifier-free guidance).
     min_snr_gamma: Min-SNR-gamma loss weighting; 0 disables it.
     masked_loss_weight: weight of masked latent cells relative to the rest.
+    masked_ground_loss_weight: further factor on the masked cells that hold no object pixel (the
+      ground and background the model repaints around the object). A hazy repaint of them is
+      what a difference from the original view counts as object.
     control_dropout: probability that a sample's ControlNet scale is 0 instead of 1.
   """
 
@@ -138,6 +141,7 @@ class DiffusionStage(StageSettings):
   caption_dropout: float = 0.1
   min_snr_gamma: float = 5.0
   masked_loss_weight: float = 2.0
+  masked_ground_loss_weight: float = 1.0
   control_dropout: float = 0.0
   ema_decay: float = 0.999
 
@@ -288,6 +292,18 @@ def inpainting_conditioning(components: model_lib.Components, vae_params: Params
   return latents, (1.0 - keep)[:, ::factor, ::factor], masked_latents
 
 
+def object_cells(object_pixels: jax.Array, latent_shape: tuple[int, int]) -> jax.Array:
+  """[B, h, w, 1] 1 where a latent cell's block of pixels holds any object pixel.
+
+  Args:
+    object_pixels: [B, H, W, 1] in {0, 1}, H and W multiples of h and w.
+  """
+  batch, height, width, _ = object_pixels.shape
+  blocks = object_pixels.reshape(batch, latent_shape[0], height // latent_shape[0],
+                                 latent_shape[1], width // latent_shape[1], 1)
+  return blocks.max(axis=(2, 4))
+
+
 def diffusion_loss_fn(components: model_lib.Components, scheduler: schedulers.SchedulerConfig,
                       settings: DiffusionStage) -> LossFunction:
   """loss(params, frozen, {"sheets": part, "singles": part}, key) of the UNet or ControlNet stage.
@@ -325,7 +341,9 @@ def diffusion_loss_fn(components: model_lib.Components, scheduler: schedulers.Sc
       target = alpha * noise - sigma * latents
     else:
       target = noise
-    cell_weights = 1.0 + (settings.masked_loss_weight - 1.0) * mask
+    masked_ground = mask * (1.0 - object_cells(part["object"], mask.shape[1:3]))
+    cell_weights = ((1.0 + (settings.masked_loss_weight - 1.0) * mask)
+                    * (1.0 + (settings.masked_ground_loss_weight - 1.0) * masked_ground))
     squared = jnp.sum(cell_weights * jnp.square(prediction - target), axis=(1, 2, 3))
     per_sample = squared / (jnp.sum(cell_weights, axis=(1, 2, 3)) * latents.shape[-1])
     if settings.min_snr_gamma > 0:

@@ -12,9 +12,10 @@ Batches (numpy, float32, images in [0, 1]):
                      inpainting mask, as the masked images and the empty slot the encoder will
                      see in the pipeline, and where their object is visible (1) or not (0);
   `diffusion_batch`  sheets (2 x 3 of 64-pixel tiles, a random `batches.SHEET_MODES` mode per
-                     sheet) and single views, each with image, mask, control [.., 1] and the
-                     caption's token ids (the empty prompt with the caption-dropout probability,
-                     for classifier-free guidance). Mask kinds are drawn per sample.
+                     sheet) and single views, each with image, mask, control [.., 1], object
+                     [.., 1] (the visible silhouettes) and the caption's token ids (the empty
+                     prompt with the caption-dropout probability, for classifier-free
+                     guidance). Mask kinds are drawn per sample.
 """
 
 from __future__ import annotations
@@ -138,7 +139,8 @@ def vae_batch(data: SplitData, rng: np.random.Generator, batch_size: int,
 def diffusion_batch(data: SplitData, rng: np.random.Generator, num_sheets: int, num_singles: int,
                     mask_kind_weights, sheet_mode_weights, caption_dropout: float
                     ) -> dict[str, dict[str, np.ndarray]]:
-  """{"sheets": ..., "singles": ...}, each {image, mask, control, ids} (module docstring).
+  """{"sheets": ..., "singles": ...}, each {image, mask, control, object, ids} (module
+  docstring).
 
   Args:
     mask_kind_weights: one weight per `data.mask_kinds` entry.
@@ -161,7 +163,7 @@ def diffusion_batch(data: SplitData, rng: np.random.Generator, num_sheets: int, 
                  for mode in batches.SHEET_MODES]
       inputs = {name: np.stack([np.asarray(by_mode[mode][name][index])
                                 for index, mode in enumerate(modes)])
-                for name in ("image", "mask", "control")}
+                for name in ("image", "mask", "control", "object")}
     else:
       inputs = {name: np.asarray(value) for name, value in
                 batches.single_view_inputs(chosen, masks).items() if name != "masked_image"}

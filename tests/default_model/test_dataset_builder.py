@@ -130,6 +130,7 @@ def test_single_view_inputs_hide_the_object(built, tiny_sampling):
                              atol=1e-6)
   control = np.asarray(inputs["control"])[..., 0]
   silhouette = arrays["silhouette"][:, 0] > 0
+  np.testing.assert_array_equal(np.asarray(inputs["object"])[..., 0], silhouette)
   assert control.min() >= 0 and control.max() <= 1
   assert np.all((control[silhouette] > 0) & (control[silhouette] < 1))
 
@@ -148,11 +149,15 @@ def test_sheet_inputs_for_each_mode(built, tiny_sampling):
   np.testing.assert_allclose(tile(everything["image"], 0, 1), views[:, 1], atol=1e-6)
   np.testing.assert_allclose(tile(everything["image"], 1, 2), views[:, 5], atol=1e-6)
   np.testing.assert_array_equal(tile(everything["mask"], 1, 2)[..., 0], masks[:, 5])
+  silhouettes = arrays["silhouette"] > 0
 
   reference = batches.sheet_inputs(arrays, masks, layout, "reference_sheet")
   np.testing.assert_allclose(tile(reference["image"], 1, 2), sheet_lib.EMPTY_SLOT_COLOR)
   assert not np.any(tile(reference["mask"], 1, 2)) and not np.any(tile(reference["control"], 1, 2))
   np.testing.assert_array_equal(tile(reference["mask"], 0, 0)[..., 0], masks[:, 0])
+  for inputs in (everything, reference):  # Every view's silhouette, in every mode.
+    np.testing.assert_array_equal(tile(inputs["object"], 0, 1)[..., 0], silhouettes[:, 1])
+    np.testing.assert_array_equal(tile(inputs["object"], 1, 2)[..., 0], silhouettes[:, 5])
 
   update = batches.sheet_inputs(arrays, masks, layout, "slot_update")
   np.testing.assert_array_equal(tile(update["mask"], 1, 2)[..., 0], masks[:, 5])

@@ -75,6 +75,28 @@ def test_hue_segmentation_finds_the_named_colour_and_ignores_repainted_ground():
   assert by_difference[0, 5, 17] and not found[0, 5, 17]
 
 
+def test_precision_recall_and_changed_ground_say_where_the_iou_is_lost():
+  generated, _, mask, silhouette = scene_with_object()
+  generated[1:22, 16:19] = striped_ground()[1:22, 16:19] + 0.2  # Ground repainted lighter.
+  found = evaluation.segment_objects(generated[None], striped_ground()[None], mask[None], 0.1, 4)
+  precision, recall = evaluation.pooled_precision_recall(found, silhouette[None])
+  hits = np.sum(found & silhouette)
+  assert precision == pytest.approx(hits / found.sum()) and precision < 1
+  assert recall == pytest.approx(hits / silhouette.sum())
+  ground = (mask >= 0.5) & ~silhouette
+  repainted = ground.copy()
+  repainted[:, :16] = repainted[:, 19:] = False
+  repainted[:1] = repainted[22:] = False
+  repainted[19, 4] = True  # The speck: counted before specks are dropped.
+  share = evaluation.changed_ground_share(generated[None], striped_ground()[None], mask[None],
+                                          silhouette[None], 0.1)
+  assert share == pytest.approx(repainted.sum() / ground.sum())
+  assert evaluation.changed_ground_share(striped_ground()[None], striped_ground()[None],
+                                         mask[None], silhouette[None], 0.1) == 0.0
+  assert np.isnan(evaluation.pooled_precision_recall(np.zeros((1, 4, 4), bool),
+                                                     np.ones((1, 4, 4), bool))[0])
+
+
 def test_segmentation_recovers_rendered_objects(tiny_sampling):
   """On true renders (a perfect generator) the IoU with the silhouette is near 1."""
   ious = []

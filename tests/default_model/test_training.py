@@ -143,6 +143,33 @@ def test_diffusion_steps_reduce_the_loss(stage, components, tiny_architecture,
   assert after < before
 
 
+def test_object_cells_mark_latent_cells_holding_any_object_pixel():
+  pixels = np.zeros((2, 8, 8, 1), np.float32)
+  pixels[0, 5, 2] = 1.0
+  pixels[1, :4, 4:] = 1.0
+  cells = np.asarray(training.object_cells(jnp.asarray(pixels), (2, 2)))[..., 0]
+  np.testing.assert_array_equal(cells, [[[0, 0], [1, 0]], [[0, 1], [0, 0]]])
+
+
+def test_masked_ground_weight_weights_only_masked_cells_without_object(
+    components, tiny_architecture, tiny_training_data):
+  _, params, frozen, batch, _ = _diffusion_setup("unet", components, tiny_architecture,
+                                                 tiny_training_data)
+  loss_fns = {weight: _diffusion_setup("unet", components, tiny_architecture, tiny_training_data,
+                                       masked_ground_loss_weight=weight)[0]
+              for weight in (1.0, 4.0)}
+  loss = lambda weight, batch: float(jax.jit(loss_fns[weight])(
+      params, frozen, batch, jax.random.key(2))[0])
+  # The batch's masks cover ground around the objects: weighting it changes the loss ...
+  assert any(np.any(np.asarray(part["mask"]) > np.asarray(part["object"]))
+             for part in batch.values())
+  assert loss(4.0, batch) != pytest.approx(loss(1.0, batch), rel=1e-5)
+  # ... and not when every masked cell holds object.
+  covered = {kind: dict(part, object=jnp.ones_like(part["object"]))
+             for kind, part in batch.items()}
+  assert loss(4.0, covered) == pytest.approx(loss(1.0, covered), rel=1e-6)
+
+
 @pytest.mark.parametrize("control_dropout", [0.0, 0.5, 1.0])
 def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero(
     control_dropout, components, tiny_architecture, tiny_training_data):
