@@ -45,9 +45,10 @@ by default, about 3 pixels at 64; the paper inpaints the visible proxy, "further
 the gate's boxes leave the whole shape to the depth), with where the IoU is lost (pooled
 precision and recall, and the share of masked ground pixels off by more than the threshold), and
 with the object found by its caption's hue (`segment_by_hue`, views whose caption names a
-chromatic colour): the masked pixels whose hue is nearest that colour's (`appearance.pixel_hue_colors`), cleaned the same way. Repainted ground
-and background rarely take the object's hue, so this measures the object's own silhouette where
-the difference segmentation also counts a hazy repaint of the box as object.
+chromatic colour): the masked pixels whose hue is nearest that colour's
+(`appearance.pixel_hue_colors`), cleaned the same way. Repainted ground and background rarely
+take the object's hue, so this measures the object's own silhouette where the difference
+segmentation also counts a hazy repaint of the box as object.
 """
 
 from __future__ import annotations
@@ -489,13 +490,15 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
                    for index in range(len(views.captions))])
   reference = round_trip(generator, background)
 
-  def sweep(masks: np.ndarray, task: str) -> tuple[list, list, dict]:
-    """Generations and found objects per scale under `masks`, and their shape measures."""
+  def sweep(inpainting_masks: np.ndarray) -> tuple[list, list, dict]:
+    """Generations and found objects per scale under `inpainting_masks`, and their shape
+    measures."""
     generated, objects = [], []
     for scale in settings.controlnet_scales:
-      generated.append(generate_with_captions(with_scale(generator, scale), views.captions,
-                                              background, masks, controls, keys, timer, task))
-      objects.append(segment_objects(generated[-1], reference, masks,
+      generated.append(generate_with_captions(
+          with_scale(generator, scale), views.captions, background, inpainting_masks, controls,
+          keys, timer, "single_view"))
+      objects.append(segment_objects(generated[-1], reference, inpainting_masks,
                                      settings.difference_threshold,
                                      settings.min_component_pixels))
     ious = [silhouette_iou(found, silhouettes) for found in objects]
@@ -508,21 +511,21 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
         "pooled_precision": [precision for precision, _ in precision_recall],
         "pooled_recall": [recall for _, recall in precision_recall],
         "changed_ground_share": [
-            changed_ground_share(images, reference, masks, silhouettes,
+            changed_ground_share(images, reference, inpainting_masks, silhouettes,
                                  settings.difference_threshold) for images in generated],
         "no_object_found": [int(np.sum(~found.any((1, 2)))) for found in objects],
         "per_view": ious}
 
-  generated, objects, shape = sweep(masks, "single_view")
+  generated, objects, shape = sweep(masks)
   truth_round_trip = round_trip(generator, truth)
-  ceiling = lambda masks: float(np.mean(silhouette_iou(segment_objects(
-      truth_round_trip, reference, masks, settings.difference_threshold,
+  ceiling = lambda inpainting_masks: float(np.mean(silhouette_iou(segment_objects(
+      truth_round_trip, reference, inpainting_masks, settings.difference_threshold,
       settings.min_component_pixels), silhouettes)))
   # Not a gate: the same with the pipeline's own proxy-placement masks (the visible proxy,
   # dilated and feathered as `SelectionConfig` does by default), as the paper inpaints.
   proxy_masks = np.asarray(masks_lib.dilate_and_feather(
       silhouettes, radius=settings.proxy_mask_dilation, feather=settings.proxy_mask_feather))
-  _, _, with_proxy_masks = sweep(proxy_masks, "single_view")
+  _, _, with_proxy_masks = sweep(proxy_masks)
   with_proxy_masks.pop("per_view")
   with_proxy_masks["segmentation_ceiling_iou"] = ceiling(proxy_masks)
   # The same objects found by their caption's hue, where it names one (not a gate).
