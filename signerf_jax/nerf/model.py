@@ -317,7 +317,7 @@ def _occupancy_samples(model, variables, rays, key, training, ray_range, finish)
   if finish:
     edges = _finish_edges(model, edges)
   along_rays = (densities.reshape(num_rays, num_steps), rgbs.reshape(num_rays, num_steps, 3),
-                   edges)
+                edges)
   return along_rays, ray_complete, {"proposals": [], "samples_evaluated": samples}
 
 
@@ -343,8 +343,9 @@ def _proposal_samples(model, variables, rays, key, training, ray_range, finish):
   next_counts = list(capacity.proposal_samples[1:]) + [capacity.samples_per_ray]
   for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
     density = field.apply({"params": params[f"proposal_{index}"]}, points_of(edges))
-    weights, _ = volume.compute_weights(density, finished(edges))
-    proposals.append((finished(edges), weights))
+    proposal_edges = finished(edges)
+    weights, _ = volume.compute_weights(density, proposal_edges)
+    proposals.append((proposal_edges, weights))
     edges = sampling.sample_pdf(keys[index + 1], edges, weights, count, training)
   sample_shape = edges.shape[:-1] + (edges.shape[-1] - 1,)
   directions = jnp.broadcast_to(rays.directions[..., None, :], sample_shape + (3,))
