@@ -8,8 +8,7 @@ from typing import Any
 import numpy as np
 
 from signerf_jax.camera import Cameras
-
-SCENE_KINDS = ("bounded", "forward_facing", "unbounded")
+from signerf_jax.data.frame import SCENE_KINDS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +31,8 @@ class Dataset:
     depths: None or [N, H, W] float32 z-depth in normalised scene units; 0 = unknown.
     extras: per-view ground truth a source may carry, e.g. {"object_masks": [N, H, W] int32}.
     root: the directory the dataset was read from ("" for in-memory datasets).
+    frame: None, or how the scene frame was found (`SceneFrame.describe`: kind, the inner
+      region's centre and size in the source's units, near/far).
   """
 
   images: np.ndarray
@@ -48,6 +49,7 @@ class Dataset:
   depths: np.ndarray | None = None
   extras: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
   root: str = ""
+  frame: dict[str, Any] | None = None
 
   def __post_init__(self):
     if self.scene_kind not in SCENE_KINDS:
@@ -96,4 +98,5 @@ class Dataset:
         "far": float(self.far),
         "has_depths": self.depths is not None,
         "has_masks": self.masks is not None,
+        "frame": self.frame,
     }

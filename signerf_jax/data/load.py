@@ -1,74 +1,221 @@
-"""One entry point for every dataset format: detect it, read it, normalise it."""
+"""One entry point for every dataset format: detect it, read it, frame it, split it.
+
+`load_dataset` reads the capture (`Capture`, in the source's frame), finds the scene frame from
+all of its views (so every split shares it), picks the split's views and reads only their
+pixels, resampled to the requested downscale.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
-from signerf_jax.data import blender, llff, nerfstudio
-from signerf_jax.data.dataset import SCENE_KINDS, Dataset
+from signerf_jax.data import blender, llff, nerfstudio, splits, views
+from signerf_jax.data import frame as frame_lib
+from signerf_jax.data import poses as poses_lib
+from signerf_jax.data.capture import Capture, ViewFiles
+from signerf_jax.data.dataset import Dataset
+from signerf_jax.data.frame import SCENE_KINDS, SceneFrame
 from signerf_jax.errors import InputError
 
-# The file that identifies each format, in the order they are tried.
-FORMAT_MARKERS = {
-    "nerfstudio": nerfstudio.TRANSFORMS_NAME,
-    "blender": "transforms_train.json",
-    "llff": llff.POSES_NAME,
-}
+FORMATS = ("nerfstudio", "blender", "llff")
+# What each format is recognised by, for the error when none is found.
+FORMAT_MARKERS = {"nerfstudio": "transforms.json (or transforms_train.json with fl_x)",
+                  "blender": "transforms_train.json", "llff": llff.POSES_NAME}
 
 
 def detect_format(root: str | os.PathLike) -> str:
-  """"nerfstudio", "blender" or "llff", from the files in `root`."""
+  """The format of the dataset in `root` (one of FORMATS), from the files it holds."""
   root = Path(root)
   if not root.is_dir():
     raise InputError("dataset directory not found", root)
-  for name, marker in FORMAT_MARKERS.items():
-    if (root / marker).is_file():
-      return name
+  if (root / nerfstudio.TRANSFORMS_NAME).is_file():
+    return "nerfstudio"
+  split_file = root / nerfstudio.SPLIT_FILE_NAMES["train"]
+  if split_file.is_file():
+    # instant-NGP / nerfstudio-style split files carry pixel intrinsics; Blender's only an angle.
+    return "nerfstudio" if nerfstudio.has_intrinsics(_json_or_none(split_file)) else "blender"
+  if (root / llff.POSES_NAME).is_file():
+    return "llff"
   raise InputError(f"unknown dataset format: none of {list(FORMAT_MARKERS.values())} found",
                    root)
 
 
+def _json_or_none(path: Path):
+  try:
+    return json.loads(path.read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return None  # The reader reports it, naming the file.
+
+
+def read_capture(root: str | os.PathLike, downscale: int = 1) -> Capture:
+  """The capture in `root`, in the source's frame (`downscale` picks LLFF's image folder)."""
+  source_format = detect_format(root)
+  if source_format == "nerfstudio":
+    return nerfstudio.read_capture(root)
+  if source_format == "blender":
+    return blender.read_capture(root)
+  return llff.read_capture(root, downscale)
+
+
+def scene_frame(capture: Capture, *, scene_kind: str | None = None, scene_center=None,
+                scene_radius: float | None = None) -> SceneFrame:
+  """The capture's scene frame, in the frame its cameras are given in.
+
+  Args:
+    capture: the capture.
+    scene_kind: overrides the kind the source implies or the cameras suggest. A source that
+      fixes its frame (a Blender scene, a signerf-written dataset) keeps its normalisation.
+    scene_center, scene_radius: the inner region's centre and half-side in the dataset's own
+      units (unbounded scenes), instead of the estimate.
+  """
+  overrides_region = scene_center is not None or scene_radius is not None
+  if capture.frame is not None:
+    if overrides_region:
+      raise InputError(f"this {capture.format} dataset fixes its own scene frame; scene_center "
+                       "and scene_radius apply to captures whose frame is estimated",
+                       capture.root, "scene_center")
+    return capture.frame if scene_kind is None else dataclasses.replace(capture.frame,
+                                                                        kind=scene_kind)
+  center = None
+  if scene_center is not None:
+    center = poses_lib.transform_points(capture.file_from_source,
+                                        _vector(scene_center, "scene_center"))
+  radius = None
+  if scene_radius is not None:
+    radius = float(scene_radius) * poses_lib.similarity_scale(capture.file_from_source)
+  kind = scene_kind or capture.kind
+  estimated = frame_lib.estimate_frame(
+      capture.cameras, kind="unbounded" if kind == "bounded" else kind, points=capture.points,
+      depth_bounds=capture.depth_bounds, object_sphere=capture.object_sphere, center=center,
+      radius=radius)
+  if kind != "bounded":
+    return estimated
+  # A bounded scene: the same inner region, rays confined to it, a constant background.
+  cameras = poses_lib.transform_cameras(estimated.world_from_source, capture.cameras)
+  near, far = poses_lib.near_far_for_box(cameras, *estimated.bounds)
+  return dataclasses.replace(estimated, kind="bounded", near=near, far=far)
+
+
+def _vector(value, field: str) -> np.ndarray:
+  try:
+    vector = np.asarray(value, np.float64)
+  except (TypeError, ValueError):
+    vector = None
+  if vector is None or vector.shape != (3,) or not np.all(np.isfinite(vector)):
+    raise InputError(f"must be three finite numbers (x, y, z), got {value!r}", field=field)
+  return vector
+
+
 def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: int = 1,
-                 background_color=(1.0, 1.0, 1.0), eval_every: int = 8,
-                 scene_kind: str | None = None) -> Dataset:
-  """Reads a nerfstudio, Blender or LLFF dataset into the normalised scene frame.
+                 background_color=(1.0, 1.0, 1.0), eval_every: int | None = None,
+                 held_out: Sequence[str] = (), scene_kind: str | None = None,
+                 scene_center=None, scene_radius: float | None = None) -> Dataset:
+  """Reads a dataset into the normalised scene frame.
 
   Args:
     root: the dataset directory.
-    split: "train", "eval" or "all". Blender uses its own files (train / test); the others hold
-      out every `eval_every`-th view, starting with the first.
-    downscale: integer image downscale; images_N/ folders are used where the source has them,
+    split: "train", "eval" or "all" (see `splits.select_views` for which views are held out).
+    downscale: integer image downscale; `images_N/` folders are used where the source has them,
       otherwise images are area-resampled. Intrinsics follow `Cameras.downscaled`.
-    background_color: [3] RGB that RGBA images are composited on (Blender, RGBA nerfstudio).
-    eval_every: the hold-out period for formats without split files.
-    scene_kind: overrides the kind the reader infers (the normalisation stays the same; a
-      scene made "bounded" gets `background_color` as its background).
+    background_color: [3] RGB that RGBA images are composited on when the source names none.
+    eval_every: hold out every N-th view instead of the source's own split.
+    held_out: names of the views to hold out (wins over `eval_every` and the source's split).
+    scene_kind, scene_center, scene_radius: overrides of the scene frame (`scene_frame`).
   Returns:
-    A Dataset whose content lies inside [-1, 1]^3; `world_from_source` maps the source's frame
-    into it. Train and eval splits of one source share that frame.
+    A Dataset in the scene frame; `world_from_source` maps the source's frame into it and
+    `frame` describes it. Every split of one source shares that frame.
   Raises:
-    InputError: naming the file and field at fault.
+    InputError: naming the file and field, or the parameter, at fault.
   """
   if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
     raise InputError(f"must be a positive integer, got {downscale!r}", field="downscale")
   if scene_kind is not None and scene_kind not in SCENE_KINDS:
     raise InputError(f"must be one of {SCENE_KINDS}, got {scene_kind!r}", field="scene_kind")
-  source_format = detect_format(root)
-  if source_format == "nerfstudio":
-    dataset = nerfstudio.read_nerfstudio(root, split=split, downscale=downscale,
-                                         background_color=background_color,
-                                         eval_every=eval_every)
-  elif source_format == "blender":
-    dataset = blender.read_blender(root, split=split, downscale=downscale,
-                                   background_color=background_color)
-  else:
-    dataset = llff.read_llff(root, split=split, downscale=downscale, eval_every=eval_every)
-  if scene_kind is not None and scene_kind != dataset.scene_kind:
-    # Only bounded scenes have a constant background colour.
-    background = np.asarray(background_color, np.float32) if scene_kind == "bounded" else None
-    dataset = dataclasses.replace(dataset, scene_kind=scene_kind, background_color=background)
-  return dataset
+  if scene_radius is not None and not (isinstance(scene_radius, (int, float))
+                                       and 0 < scene_radius < np.inf):
+    raise InputError(f"must be a positive number, got {scene_radius!r}", field="scene_radius")
+  capture = read_capture(root, downscale)
+  frame = scene_frame(capture, scene_kind=scene_kind, scene_center=scene_center,
+                      scene_radius=scene_radius)
+  selected = splits.select_views(capture.names, split, source_splits=capture.source_splits,
+                                 eval_every=eval_every, held_out=held_out, path=capture.root)
+  cameras = poses_lib.transform_cameras(frame.world_from_source, capture.cameras)
+  cameras = cameras.take(selected).downscaled(downscale)
+  background = (capture.background_color if capture.background_color is not None
+                else np.asarray(background_color, np.float32))
+  reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
+  chosen = [capture.files[index] for index in selected]
+  images = reader.read_all(chosen, "image", lambda p: views.read_color(p, background), "area",
+                           0.0)
+  masks = reader.read_all(chosen, "mask", views.read_mask, "area", 1.0)
+  depths = reader.read_all(chosen, "depth",
+                           lambda p: views.read_depth(p, capture.depth_unit_scale), "nearest",
+                           0.0)
+  object_masks = reader.read_all(chosen, "object_mask", views.read_object_ids, "nearest", 0)
+  world_from_source = frame.world_from_source @ capture.file_from_source
+  return Dataset(
+      images=images,
+      cameras=cameras,
+      image_names=tuple(capture.names[index] for index in selected),
+      scene_bounds=np.asarray(frame.bounds, np.float32),
+      scene_kind=frame.kind,
+      near=float(frame.near),
+      far=float(frame.far),
+      background_color=background if frame.kind == "bounded" else None,
+      world_from_source=world_from_source.astype(np.float32),
+      masks=masks,
+      depths=None if depths is None else depths * np.float32(frame.scale),
+      extras={} if object_masks is None else {"object_masks": object_masks.astype(np.int32)},
+      root=str(root),
+      frame=dataclasses.replace(frame, world_from_source=world_from_source).describe(),
+  )
+
+
+@dataclasses.dataclass(frozen=True)
+class _ViewReader:
+  """Reads the chosen views' files at the cameras' size, from prepared copies where they exist."""
+
+  capture: Capture
+  downscale: int
+  target_size: tuple[int, int]
+
+  def read_all(self, chosen: Sequence[ViewFiles], kind: str, read, method: str, default):
+    """[N, H, W(, C)] of each view's file of `kind`, or None when no view has one (views
+    without get `default`)."""
+    if all(getattr(view, kind) is None for view in chosen):
+      return None
+    arrays = []
+    for view in chosen:
+      path = getattr(view, kind)
+      if path is None:
+        arrays.append(np.full(self.target_size[::-1], default, np.float32))
+        continue
+      arrays.append(self._read(view, kind, path, read, method))
+    return np.stack(arrays)
+
+  def _read(self, view: ViewFiles, kind: str, path: Path, read, method: str) -> np.ndarray:
+    capture = self.capture
+    full_size = (capture.cameras.width, capture.cameras.height)
+    prepared = None
+    if capture.file_factor == 1 and self.downscale > 1:
+      try:
+        relative = path.relative_to(capture.root).as_posix()
+      except ValueError:
+        relative = None
+      if relative is not None:
+        prepared = views.prepared_downscale_path(capture.root, relative, self.downscale)
+    if prepared is not None:
+      file_size, tolerance = self.target_size, 1
+    else:
+      factor = capture.file_factor
+      file_size = (round(full_size[0] / factor), round(full_size[1] / factor))
+      tolerance = 0 if factor == 1 else 1
+    return views.read_view(read, prepared or path, view.field(kind), file_size=file_size,
+                           target_size=self.target_size, method=method,
+                           size_tolerance=tolerance)

@@ -1,11 +1,16 @@
-"""nerfstudio `transforms.json`: reader and writer.
+"""nerfstudio `transforms.json` (and instant-NGP-style `transforms_{train,val,test}.json`):
+reader and writer.
 
 The format (https://docs.nerf.studio/quickstart/data_conventions.html): OpenGL camera-to-world
 `transform_matrix` per frame, intrinsics `fl_x fl_y cx cy w h` and OpenCV distortion `k1 k2 p1 p2`
 at the top level or per frame (per-frame values win), `camera_model` OPENCV or PINHOLE,
-per-frame `file_path`, `mask_path` (0 = ignore the pixel) and `depth_file_path` (z-depth: EXR as
-stored, 16-bit PNG times `depth_unit_scale_factor`, default 1e-3), and `applied_transform` (3x4:
-the file's poses = applied_transform @ the poses in the capture's original frame).
+per-frame `file_path` (a path without extension is looked up as .png / .jpg), `mask_path`
+(0 = ignore the pixel), `depth_file_path` (z-depth: EXR as stored, 16-bit PNG times
+`depth_unit_scale_factor`, default 1e-3), `applied_transform` (3x4: the file's poses =
+applied_transform @ the poses in the capture's original frame) and the split keys
+`train_filenames`, `val_filenames`, `test_filenames`. A capture may instead come as
+`transforms_train.json` with `transforms_val.json` / `transforms_test.json` that carry their own
+intrinsics (`fl_x`; a file with only `camera_angle_x` is a Blender scene): the files are the split.
 
 signerf extension (optional, ignored by nerfstudio): a top-level block
   "signerf": {"scene_kind": "bounded" | "forward_facing" | "unbounded",
@@ -15,14 +20,10 @@ signerf extension (optional, ignored by nerfstudio): a top-level block
 and per frame "object_mask_path": an 8-bit PNG of object ids (0 = none), loaded into
 `Dataset.extras["object_masks"]`.
 
-Normalisation into the scene frame (content inside [-1, 1]^3):
-  * with `signerf.scene_bounds`: bounds already inside [-1, 1]^3 are kept as they are (the file is
-    already normalised, e.g. written by `write_nerfstudio`); others are centred and scaled so
-    their largest side spans [-1, 1]. near/far default to the range covering the bounds.
-  * without it (a plain nerfstudio capture), as nerfstudio's defaults do: rotate the mean camera
-    up vector onto +z, centre the camera positions on their mean and scale them into [-1, 1]^3.
-    The scene is "forward_facing" when every camera looks within 45 degrees of the mean viewing
-    direction and "unbounded" otherwise; bounds are [-1, 1]^3, near/far are nerfacto's 0.05/1000.
+The scene frame: with `signerf.scene_bounds`, bounds already inside [-1, 1]^3 are kept as they
+are (the file is already normalised, e.g. written by `write_nerfstudio`); others are centred and
+scaled so their largest side spans [-1, 1]. near/far default to the range covering the bounds.
+Without it (a plain capture), `frame.estimate_frame` finds it from the cameras.
 """
 
 from __future__ import annotations
@@ -38,42 +39,85 @@ import numpy as np
 from signerf_jax import files
 from signerf_jax.camera import Cameras
 from signerf_jax.data import poses as poses_lib
-from signerf_jax.data import views
-from signerf_jax.data.dataset import SCENE_KINDS, Dataset
+from signerf_jax.data import splits, views
+from signerf_jax.data.capture import FILE_KEYS, Capture, ViewFiles
+from signerf_jax.data.dataset import Dataset
+from signerf_jax.data.frame import SCENE_KINDS, SceneFrame
 from signerf_jax.errors import InputError
 
 TRANSFORMS_NAME = "transforms.json"
+SPLIT_FILE_NAMES = {"train": "transforms_train.json", "val": "transforms_val.json",
+                    "test": "transforms_test.json"}
+SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
 EXTENSION_KEY = "signerf"
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
 # Radial terms our camera model does not have: a file using them cannot be read faithfully.
 UNSUPPORTED_DISTORTION_KEYS = ("k3", "k4")
 CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 DEFAULT_DEPTH_UNIT_SCALE = 1e-3
-# nerfacto's ray range for captures whose extent is unknown.
-UNBOUNDED_NEAR, UNBOUNDED_FAR = 0.05, 1000.0
-FORWARD_FACING_MAX_ANGLE_DEGREES = 45.0
+# Extensions tried, in order, for a `file_path` given without one (instant-NGP captures).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 # The writer's per-view files: subfolder and suffix per kind of data.
 IMAGE_FOLDER, MASK_FOLDER, DEPTH_FOLDER, OBJECT_MASK_FOLDER = (
     "images", "masks", "depths", "object_masks")
 _WRITTEN_FILE_PATTERN = re.compile(r"frame_\d{5}\.(png|exr)")
 
 
-def read_nerfstudio(root: str | os.PathLike, *, split: str = "train", downscale: int = 1,
-                    background_color=(1.0, 1.0, 1.0), eval_every: int = 8) -> Dataset:
-  """Reads `root`/transforms.json into a normalised Dataset.
+def has_intrinsics(meta: Any) -> bool:
+  """Whether a transforms file carries pixel intrinsics (nerfstudio / instant-NGP), not only
+  Blender's `camera_angle_x`."""
+  if not isinstance(meta, dict):
+    return False
+  frames = meta.get("frames") if isinstance(meta.get("frames"), list) else []
+  return "fl_x" in meta or any(isinstance(frame, dict) and "fl_x" in frame for frame in frames)
 
-  Args:
-    root: the dataset directory; file paths in the json are relative to it.
-    split: "train", "eval" (every `eval_every`-th frame, starting with the first) or "all".
-    downscale: integer image downscale; `images_N/` style copies are used when present.
-    background_color: [3] colour RGBA images are composited on (the extension block's colour,
-      when given, takes precedence: it is the colour the scene was made with).
-    eval_every: the hold-out period of the split.
+
+def read_capture(root: str | os.PathLike) -> Capture:
+  """Reads `root`/transforms.json, or the `transforms_{train,val,test}.json` split files.
+
   Raises:
     InputError: naming the file and field at fault (e.g. `frames[3].transform_matrix`).
   """
   root = Path(root)
-  path = root / TRANSFORMS_NAME
+  if (root / TRANSFORMS_NAME).is_file():
+    path = root / TRANSFORMS_NAME
+    meta = _read_meta(path)
+    entries = [(path, meta, index, frame) for index, frame in enumerate(meta["frames"])]
+    names = [frame["file_path"] for _, _, _, frame in entries]
+    source_splits = _split_keys(meta, names, path)
+  else:
+    entries, source_splits = _read_split_files(root)
+    meta = _read_meta(root / SPLIT_FILE_NAMES["train"])
+    path = root / SPLIT_FILE_NAMES["train"]
+    names = [frame["file_path"] for _, _, _, frame in entries]
+
+  cameras = _read_cameras(entries)
+  extension = _extension_block(meta, path)
+  frame = _frame_from_extension(extension, cameras) if "scene_bounds" in extension else None
+  depth_scale = meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE)
+  if (isinstance(depth_scale, bool) or not isinstance(depth_scale, (int, float))
+      or not 0 < depth_scale < math.inf):
+    raise InputError(f"must be a finite positive number, got {depth_scale!r}", path,
+                     "depth_unit_scale_factor")
+  background = extension.get("background_color")
+  return Capture(
+      root=root,
+      cameras=cameras,
+      names=tuple(names),
+      files=tuple(_view_files(root, frame_entry, label) for label, frame_entry in zip(
+          _labels(entries, root), (entry[3] for entry in entries))),
+      source_splits=source_splits,
+      frame=frame,
+      kind=extension.get("scene_kind"),
+      depth_unit_scale=float(depth_scale),
+      file_from_source=_applied_transform(meta, path),
+      background_color=None if background is None else np.asarray(background, np.float32),
+      format="nerfstudio",
+  )
+
+
+def _read_meta(path: Path) -> dict[str, Any]:
+  """A transforms file with a validated, non-empty `frames` list (each with a `file_path`)."""
   meta = files.read_json(path)
   if not isinstance(meta, dict):
     raise InputError("must hold a JSON object", path)
@@ -86,75 +130,91 @@ def read_nerfstudio(root: str | os.PathLike, *, split: str = "train", downscale:
     if not isinstance(frame.get("file_path"), str):
       raise InputError("missing (the image's path is required)", path,
                        f"frames[{index}].file_path")
-
-  cameras = _read_cameras(meta, frames, path)
-  source_from_original = _applied_transform(meta, path)
-  extension = _extension_block(meta, path)
-  if "scene_bounds" in extension:
-    world_from_file, scene = _scene_from_extension(extension, cameras)
-  else:
-    world_from_file, scene = _scene_from_cameras(cameras)
-  scene["scene_kind"] = extension.get("scene_kind", scene["scene_kind"])
-  depth_scale = poses_lib.similarity_scale(world_from_file)
-  background = np.asarray(extension.get("background_color") or background_color, np.float32)
-
-  selected = views.split_indices(len(frames), split, eval_every)
-  full_size = (cameras.width, cameras.height)
-  cameras = poses_lib.transform_cameras(world_from_file, cameras).take(selected)
-  cameras = cameras.downscaled(downscale)
-  target_size = (cameras.width, cameras.height)
-  png_depth_scale = meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE)
-  if (isinstance(png_depth_scale, bool) or not isinstance(png_depth_scale, (int, float))
-      or not 0 < png_depth_scale < math.inf):
-    raise InputError(f"must be a finite positive number, got {png_depth_scale!r}", path,
-                     "depth_unit_scale_factor")
-
-  def read_all(key, read, method, default):
-    """The per-view files named by `key` ([N, H, W(, C)]), or None when no frame has one."""
-    if not any(key in frames[index] for index in selected):
-      return None
-    arrays = []
-    for index in selected:
-      if key not in frames[index]:
-        arrays.append(np.full(target_size[::-1], default, np.float32))
-        continue
-      relative = frames[index][key]
-      prepared = views.prepared_downscale_path(root, relative, downscale)
-      arrays.append(views.read_view(
-          read, prepared or root / relative, f"frames[{index}].{key}",
-          file_size=target_size if prepared else full_size, target_size=target_size,
-          method=method, size_tolerance=1 if prepared else 0))
-    return np.stack(arrays)
-
-  images = read_all("file_path", lambda p: views.read_color(p, background), "area", 0.0)
-  masks = read_all("mask_path", views.read_mask, "area", 1.0)
-  depths = read_all("depth_file_path", lambda p: views.read_depth(p, png_depth_scale),
-                    "nearest", 0.0)
-  object_masks = read_all("object_mask_path", views.read_object_ids, "nearest", 0)
-  return Dataset(
-      images=images,
-      cameras=cameras,
-      image_names=tuple(frames[index]["file_path"] for index in selected),
-      background_color=background if scene["scene_kind"] == "bounded" else None,
-      world_from_source=(world_from_file @ source_from_original).astype(np.float32),
-      masks=masks,
-      depths=None if depths is None else depths * np.float32(depth_scale),
-      extras={} if object_masks is None else {"object_masks": object_masks.astype(np.int32)},
-      root=str(root),
-      **scene,
-  )
+  return meta
 
 
-def _read_cameras(meta: dict[str, Any], frames: list[dict[str, Any]], path: Path) -> Cameras:
-  """All frames' cameras in the file's frame, at the resolution the json declares."""
-  camera_model = meta.get("camera_model", "OPENCV")
-  if camera_model not in CAMERA_MODELS:
-    raise InputError(f"unsupported camera model {camera_model!r} (supported: {CAMERA_MODELS})",
-                     path, "camera_model")
-  cameras = [_frame_camera(meta, frame, f"frames[{index}]", path, camera_model)
-             for index, frame in enumerate(frames)]
+def _split_keys(meta: dict[str, Any], names: list[str], path: Path
+                ) -> dict[str, tuple[int, ...]] | None:
+  """nerfstudio's split keys as view indices: train, and eval = val (nerfstudio's evaluation
+  split), else test. None when the file has none."""
+  listed = {split: meta[key] for split, key in SPLIT_KEYS.items() if key in meta}
+  if not listed:
+    return None
+  indices = {}
+  for split, values in listed.items():
+    if not isinstance(values, list) or not all(isinstance(value, str) for value in values):
+      raise InputError("must be a list of file paths", path, SPLIT_KEYS[split])
+    indices[split] = tuple(splits.match_names(names, values, path, SPLIT_KEYS[split]).tolist())
+  if "train" not in indices:
+    raise InputError("missing while other split keys are given (nerfstudio requires it)", path,
+                     SPLIT_KEYS["train"])
+  return {"train": indices["train"], "eval": indices.get("val", indices.get("test", ()))}
+
+
+def _read_split_files(root: Path):
+  """Frames of transforms_{train,val,test}.json, each view once (instant-NGP captures often
+  repeat the test frames as val), and the split the files make."""
+  entries, indices_by_name = [], {}
+  split_indices: dict[str, list[int]] = {}
+  for split, file_name in SPLIT_FILE_NAMES.items():
+    path = root / file_name
+    if not path.is_file():
+      if split == "train":
+        raise InputError("file not found", path)
+      continue
+    meta = _read_meta(path)
+    split_indices[split] = []
+    for index, frame in enumerate(meta["frames"]):
+      key = splits.name_key(frame["file_path"])
+      if key not in indices_by_name:
+        indices_by_name[key] = len(entries)
+        entries.append((path, meta, index, frame))
+      split_indices[split].append(indices_by_name[key])
+  evaluation = split_indices.get("test", split_indices.get("val", []))
+  return entries, {"train": tuple(split_indices["train"]), "eval": tuple(evaluation)}
+
+
+def _image_path(root: Path, relative: str) -> Path:
+  """The image a `file_path` names; without an extension, the first of IMAGE_SUFFIXES found."""
+  path = root / relative
+  if path.suffix or path.is_file():
+    return path
+  for suffix in IMAGE_SUFFIXES:
+    candidate = path.with_name(path.name + suffix)
+    if candidate.is_file():
+      return candidate
+  return path
+
+
+def _labels(entries, root: Path) -> list[str]:
+  """How errors name each view: "frames[i]", prefixed by the file when there are several."""
+  several = len({path for path, _, _, _ in entries}) > 1
+  return [f"{path.relative_to(root)}: frames[{index}]" if several else f"frames[{index}]"
+          for path, _, index, _ in entries]
+
+
+def _view_files(root: Path, frame: dict[str, Any], label: str) -> ViewFiles:
+  others = {kind: root / frame[key] for kind, key in FILE_KEYS.items()
+            if kind != "image" and isinstance(frame.get(key), str)}
+  return ViewFiles(image=_image_path(root, frame["file_path"]), label=label, **others)
+
+
+def _read_cameras(entries) -> Cameras:
+  """All frames' cameras in the file's frame, at the resolution the json declares.
+
+  Args:
+    entries: (path, meta, index, frame) per view: its file, that file's top level, its index
+      there and the frame itself.
+  """
+  cameras = []
+  for path, meta, index, frame in entries:
+    camera_model = meta.get("camera_model", "OPENCV")
+    if camera_model not in CAMERA_MODELS:
+      raise InputError(f"unsupported camera model {camera_model!r} (supported: "
+                       f"{CAMERA_MODELS})", path, "camera_model")
+    cameras.append(_frame_camera(meta, frame, f"frames[{index}]", path, camera_model))
   width, height = cameras[0]["size"]
-  for index, frame_camera in enumerate(cameras):
+  for (path, _, index, _), frame_camera in zip(entries, cameras):
     frame_width, frame_height = frame_camera["size"]
     if (frame_width, frame_height) != (width, height):
       raise InputError(f"image size {frame_width}x{frame_height} differs from the first frame's "
@@ -257,9 +317,8 @@ def _extension_block(meta: dict[str, Any], path: Path) -> dict[str, Any]:
   return block
 
 
-def _scene_from_extension(extension: dict[str, Any],
-                          cameras: Cameras) -> tuple[np.ndarray, dict[str, Any]]:
-  """The file-to-scene similarity and the scene's kind, bounds, near, far from the signerf block."""
+def _frame_from_extension(extension: dict[str, Any], cameras: Cameras) -> SceneFrame:
+  """The frame the signerf block fixes: its kind (default bounded), bounds, near and far."""
   lower, upper = np.asarray(extension["scene_bounds"], np.float64)
   inside_unit_box = np.all(lower >= -1 - 1e-6) and np.all(upper <= 1 + 1e-6)
   world_from_file = np.eye(4) if inside_unit_box else poses_lib.unit_box_similarity(lower, upper)
@@ -270,25 +329,8 @@ def _scene_from_extension(extension: dict[str, Any],
   else:
     near, far = poses_lib.near_far_for_box(
         poses_lib.transform_cameras(world_from_file, cameras), *bounds)
-  return world_from_file, dict(scene_kind="bounded", scene_bounds=bounds.astype(np.float32),
-                               near=float(near), far=float(far))
-
-
-def _scene_from_cameras(cameras: Cameras) -> tuple[np.ndarray, dict[str, Any]]:
-  """nerfstudio's default normalisation (up to +z, centred, cameras in [-1, 1]^3) and the kind."""
-  camera_to_world = np.asarray(cameras.camera_to_world, np.float64)
-  rotation = poses_lib.rotation_between(camera_to_world[:, :, 1].mean(0), [0.0, 0.0, 1.0])
-  positions = camera_to_world[:, :, 3] @ rotation.T
-  centre = positions.mean(0)
-  scale = 1.0 / max(np.max(np.abs(positions - centre)), 1e-12)
-  world_from_file = poses_lib.similarity(scale, rotation, -scale * centre)
-  forwards = -camera_to_world[:, :, 2]
-  mean_forward = forwards.mean(0) / max(np.linalg.norm(forwards.mean(0)), 1e-12)
-  forward_facing = np.min(forwards @ mean_forward) > np.cos(
-      np.radians(FORWARD_FACING_MAX_ANGLE_DEGREES))
-  return world_from_file, dict(scene_kind="forward_facing" if forward_facing else "unbounded",
-                               scene_bounds=np.array([[-1, -1, -1], [1, 1, 1]], np.float32),
-                               near=UNBOUNDED_NEAR, far=UNBOUNDED_FAR)
+  return SceneFrame(extension.get("scene_kind", "bounded"), world_from_file, bounds,
+                    float(near), float(far), "signerf block")
 
 
 def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,

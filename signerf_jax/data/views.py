@@ -12,25 +12,6 @@ import numpy as np
 from signerf_jax import files
 from signerf_jax.errors import InputError
 
-SPLITS = ("train", "eval", "all")
-
-
-def split_indices(count: int, split: str, eval_every: int) -> np.ndarray:
-  """Indices of the views in `split`: every `eval_every`-th view (0, k, 2k, ...) is held out.
-
-  This is NeRF's LLFF hold-out (`llffhold`), applied to every format without split files.
-  """
-  if split not in SPLITS:
-    raise InputError(f"must be one of {SPLITS}, got {split!r}", field="split")
-  if eval_every < 2:
-    raise InputError(f"must be at least 2, got {eval_every}", field="eval_every")
-  indices = np.arange(count)
-  if split == "all":
-    return indices
-  held_out = indices % eval_every == 0
-  return indices[held_out] if split == "eval" else indices[~held_out]
-
-
 def read_color(path: str | os.PathLike, background_color) -> np.ndarray:
   """An RGB image [H, W, 3] float32 in [0, 1]; RGBA is composited on `background_color` ([3]).
 

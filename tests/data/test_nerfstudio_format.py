@@ -105,7 +105,7 @@ def test_rgba_images_are_composited_on_the_background(tmp_path, dataset_factory)
                              atol=2 / 255)
 
 
-def test_plain_nerfstudio_capture_is_normalised_like_nerfstudio(tmp_path, dataset_factory):
+def test_plain_capture_is_centred_on_what_its_cameras_look_at(tmp_path, dataset_factory):
   dataset = dataset_factory(count=8, with_extras=False)
   source_from_scene = poses.similarity(7.0, poses.rotation_between([0, 0, 1], [1, 0, 0]),
                                        [3.0, -2.0, 5.0])
@@ -117,8 +117,13 @@ def test_plain_nerfstudio_capture_is_normalised_like_nerfstudio(tmp_path, datase
   restored = load_dataset(tmp_path, split="all")
   assert restored.scene_kind == "unbounded" and restored.background_color is None
   positions = np.asarray(restored.cameras.positions)
+  # The cameras lie inside the inner region, the farthest on its border.
   assert np.max(np.abs(positions)) == pytest.approx(1.0, abs=1e-5)
-  np.testing.assert_allclose(positions.mean(0), 0.0, atol=1e-5)
+  # The ring's cameras look at the origin of their frame, which the source frame moved to
+  # (3, -2, 5): that point, not the cameras' centroid, becomes the scene's centre.
+  np.testing.assert_allclose(poses.transform_points(restored.world_from_source, [3.0, -2.0, 5.0]),
+                             0.0, atol=1e-5)
+  assert restored.frame["center_in_source_units"] == pytest.approx([3.0, -2.0, 5.0], abs=1e-5)
   # The ring's cameras share one up vector: it is turned onto +z.
   np.testing.assert_allclose(np.asarray(restored.cameras.camera_to_world)[:, :, 1].mean(0)
                              @ [0, 0, 1], np.linalg.norm(
