@@ -1,11 +1,18 @@
-"""Speed against error of the NeRF on this machine: PSNR (and depth error) against wall-clock
-training time on a synthetic scene, Blender lego at 100x100 and LLFF fern (images_16), plus what
-the derived capacity buys against a fixed large configuration.
+"""Speed against error of the NeRF on real captures and synthetic scenes: held-out PSNR against
+training seconds, the generalisation gap to the training views and near-camera floaters.
 
   python experiments/bench_nerf.py [--gin_file bench_nerf] [--gin_param 'bench_nerf.scenes = ["lego"]']
 
-Writes experiments/results/bench_nerf.json, bench_nerf.png and bench_nerf.gin (the full config).
-Training time excludes evaluation; it includes compilation and occupancy-grid updates.
+Scenes (in ../shared/data; `SIGNERF_SHARED_DATA` points elsewhere):
+  stitch_200, stitch_400  the real 360-degree phone capture at 200^2 and 400^2, held out = its
+                          test views (transforms_test.json);
+  fern                    LLFF fern images_8 (504x378), every 8th view held out;
+  lego                    Blender lego at 100^2, its 25 test views;
+  lego_12                 the same with 12 training views (0, 8, ..., 88 of the 100).
+Each trains once with the schedule spanning its longest time and is evaluated at every time in
+`seconds` (training time excludes evaluation; it includes compilation). Writes
+experiments/results/bench_nerf.{json,png,gin} and bench_nerf_<scene>.png (held-out views: the
+photo, the render and its depth).
 """
 
 from __future__ import annotations
@@ -14,132 +21,141 @@ import argparse
 import dataclasses
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
 import gin
 import jax
+import numpy as np
 
 from signerf_jax import configs, files
-from signerf_jax.data import load_dataset, synthetic
-from signerf_jax.nerf import evaluate, train
-from signerf_jax.nerf.model import NerfModel
+from signerf_jax.data import load_dataset
+from signerf_jax.editing import figures
+from signerf_jax.nerf import evaluate, render, train
 
 import plotting  # experiments/plotting.py (this script's directory is on sys.path)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
                                   Path(__file__).resolve().parents[2] / "shared" / "data"))
-# How each benchmark scene is read: (path or None for the generated scene, downscale).
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+  """A benchmark scene: where it is, how it is read, and which training views are kept."""
+
+  path: Path
+  downscale: int
+  training_views: slice = slice(None)
+
+
 SCENES = {
-    "synthetic": (None, 1),
-    "lego": (SHARED_DATA / "nerf_synthetic" / "lego", 8),
-    "fern": (SHARED_DATA / "llff" / "fern", 16),
+    "stitch_200": Scene(SHARED_DATA / "stitch", 4),
+    "stitch_400": Scene(SHARED_DATA / "stitch", 2),
+    "fern": Scene(SHARED_DATA / "llff" / "fern", 8),
+    "lego": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8),
+    "lego_12": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8, slice(0, 96, 8)),
 }
+FIGURE_VIEWS = 3
 
 
-def load_scene(name: str, workdir: Path):
-  """(train, eval) datasets of a benchmark scene."""
-  root, downscale = SCENES[name]
-  if root is None:
-    root = workdir / "synthetic"
-    synthetic.generate(root, seed=0)
-  if not Path(root).is_dir():
-    raise FileNotFoundError(f"benchmark scene {name} needs {root}")
-  return (load_dataset(root, split="train", downscale=downscale),
-          load_dataset(root, split="eval", downscale=downscale))
+def load_scene(name: str):
+  """(train, held-out) datasets of a benchmark scene."""
+  scene = SCENES[name]
+  if not scene.path.is_dir():
+    raise FileNotFoundError(f"benchmark scene {name} needs {scene.path}")
+  training = load_dataset(scene.path, split="train", downscale=scene.downscale)
+  training = training.subset(np.arange(training.num_images)[scene.training_views])
+  return training, load_dataset(scene.path, split="eval", downscale=scene.downscale)
 
 
-def train_and_measure(train_set, eval_set, model: NerfModel, seconds: Sequence[float],
-                      label: str) -> dict[str, Any]:
-  """Trains in bursts up to each time in `seconds`, evaluating on `eval_set` after each."""
-  config = train.TrainConfig()
-  trainer = train.make_trainer(train_set, model=model, config=config)
-  curve = []
+def figure(held_out, renders) -> np.ndarray:
+  """Rows of held-out views: photo, render, depth."""
+  views = np.linspace(0, held_out.num_images - 1, FIGURE_VIEWS).round().astype(int)
+  rows = [[held_out.images[i], renders["rgb"][i], render.depth_image(renders["depth"][i])]
+          for i in views]
+  labels = [[f"{held_out.image_names[i]}", "render", "depth"] for i in views]
+  return figures.image_grid(rows, labels)
+
+
+def train_and_measure(name: str, seconds: Sequence[float]) -> dict[str, Any]:
+  """Trains `name` with the schedule spanning max(seconds), evaluating at each time."""
+  training, held_out = load_scene(name)
+  model = train.build_model(training)
+  config = dataclasses.replace(train.TrainConfig(), max_seconds=max(seconds),
+                               steps=1_000_000_000)
+  trainer = train.make_trainer(training, model=model, config=config)
+  curve, renders = [], None
   for limit in seconds:
-    statistics = trainer.run(until_step=config.steps * 100, until_seconds=limit, progress=False)
+    trainer.run(until_seconds=limit, progress=False)
     started = time.perf_counter()
-    metrics, _ = evaluate.evaluate(model, trainer.state.variables, eval_set)
-    point = {"seconds": trainer.seconds_trained, "step": trainer.step, **metrics,
-             "batch_psnr": statistics.get("psnr"),
+    report, renders = evaluate.generalisation_report(model, trainer.state.variables, held_out,
+                                                     training)
+    held_out_metrics = report["held_out"]
+    point = {"seconds": trainer.seconds_trained, "step": trainer.step,
+             "held_out": held_out_metrics, "train": report["train"],
+             "generalisation_gap_db": report["generalisation_gap_db"],
              "eval_seconds": time.perf_counter() - started}
     curve.append(point)
-    print(f"[{label}] {point['seconds']:.0f} s, step {point['step']}: "
-          f"{point['psnr']:.2f} dB, ssim {point['ssim']:.3f}, depth_mae {point['depth_mae']}",
-          flush=True)
+    print(f"[{name}] {point['seconds']:.0f} s, step {point['step']}: held-out "
+          f"{held_out_metrics['psnr']:.2f} dB / SSIM {held_out_metrics['ssim']:.3f}, train "
+          f"{report['train']['psnr']:.2f} dB, near-camera weight "
+          f"{held_out_metrics['near_camera_weight']:.4f}", flush=True)
+  files.write_image(RESULTS / f"bench_nerf_{name}.png", figure(held_out, renders))
+  rays = trainer.step * model.capacity.rays_per_batch
   return {
+      "train_views": training.num_images, "held_out_views": held_out.num_images,
+      "image_size": [training.width, training.height],
+      "frame": training.frame,
       "curve": curve,
-      "psnr_at_seconds": {str(int(limit)): point["psnr"] for limit, point in zip(seconds, curve)},
-      "samples_per_second": trainer.samples_trained / max(trainer.seconds_trained, 1e-9),
+      "held_out_psnr_at_seconds": {str(int(limit)): point["held_out"]["psnr"]
+                                   for limit, point in zip(seconds, curve)},
+      "training_samples_per_second": trainer.samples_trained / max(trainer.seconds_trained, 1e-9),
+      "training_rays_per_second": rays / max(trainer.seconds_trained, 1e-9),
       "steps_per_second": trainer.step / max(trainer.seconds_trained, 1e-9),
       "capacity": dataclasses.asdict(model.capacity),
   }
 
 
 @gin.configurable("bench_nerf")
-def run_benchmark(scenes: Sequence[str] = ("synthetic", "lego", "fern"),
-                  seconds: Sequence[float] = (60, 120, 300, 600),
-                  comparison_scene: str = "lego",
-                  comparison_seconds: Sequence[float] = (60, 120, 300),
-                  fixed_large_capacity: dict[str, Any] | None = None,
-                  machine_shared: bool = True,
+def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
+                  seconds: dict[str, Sequence[float]] | None = None,
+                  machine_shared: bool = False,
                   progress_path: Path | None = None) -> dict[str, Any]:
-  """Runs every scene, then derived-vs-fixed-large capacity on `comparison_scene`.
+  """Runs every scene.
 
   Args:
     scenes: names from SCENES.
-    seconds: training times at which to evaluate.
-    comparison_scene, comparison_seconds: where and how long to compare capacities.
-    fixed_large_capacity: Capacity overrides of the fixed large configuration (instant-NGP's
-      defaults: 16 levels, 16..2048, 2^19 rows); None skips the comparison.
+    seconds: per scene, the training times at which to evaluate.
     machine_shared: record whether other jobs shared the CPU (timings are then pessimistic).
     progress_path: if given, the partial result is written there after every scene.
   """
+  seconds = dict(seconds or {})
   result: dict[str, Any] = {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),
                   "cpu_count": os.cpu_count(), "jax": jax.__version__,
                   "shared_with_other_jobs": machine_shared,
                   "load_average_at_start": os.getloadavg()},
+      "train_config": dataclasses.asdict(train.TrainConfig()),
       "scenes": {},
   }
-  with tempfile.TemporaryDirectory() as workdir:
-    for name in scenes:
-      train_set, eval_set = load_scene(name, Path(workdir))
-      model = train.build_model(train_set)
-      result["scenes"][name] = {
-          "train_views": train_set.num_images, "eval_views": eval_set.num_images,
-          "image_size": [train_set.width, train_set.height],
-          **train_and_measure(train_set, eval_set, model, seconds, name)}
-      if progress_path is not None:
-        files.write_json(progress_path, result)
-    if fixed_large_capacity is not None:
-      train_set, eval_set = load_scene(comparison_scene, Path(workdir))
-      derived = train.build_model(train_set)
-      large = NerfModel(derived.scene, dataclasses.replace(derived.capacity,
-                                                           **fixed_large_capacity))
-      result["capacity_comparison"] = {"scene": comparison_scene}
-      for label, model in (("derived", derived), ("fixed_large", large)):
-        measured = train_and_measure(train_set, eval_set, model, comparison_seconds,
-                                     f"{comparison_scene}/{label}")
-        result["capacity_comparison"][label] = measured
+  for name in scenes:
+    result["scenes"][name] = train_and_measure(name, seconds.get(name, (60, 120, 300, 600)))
+    if progress_path is not None:
+      files.write_json(progress_path, result)
   result["load_average_at_end"] = os.getloadavg()
   return result
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
-  """PSNR against training seconds, one line per scene and per capacity of the comparison."""
-  lines = [(name, scene["curve"]) for name, scene in result["scenes"].items()]
-  comparison = result.get("capacity_comparison")
-  if comparison:
-    for label in ("derived", "fixed_large"):
-      lines.append((f"{comparison['scene']} ({label} capacity)", comparison[label]["curve"]))
-  series = [plotting.Series(label, [point["seconds"] for point in curve],
-                            [point["psnr"] for point in curve]) for label, curve in lines]
+  """Held-out PSNR against training seconds, one line per scene."""
+  series = [plotting.Series(name, [point["seconds"] for point in scene["curve"]],
+                            [point["held_out"]["psnr"] for point in scene["curve"]])
+            for name, scene in result["scenes"].items()]
   plotting.write_panels(path, [plotting.line_chart(
-      "NeRF: speed against error", series, "training seconds on this machine", "PSNR (dB)",
-      width=900, height=560, y_from_zero=False)])
+      "NeRF: held-out PSNR against training time", series, "training seconds on this machine",
+      "held-out PSNR (dB)", width=900, height=560, y_from_zero=False)])
 
 
 def main() -> None:

@@ -77,6 +77,8 @@ class Capture:
     file_factor: the view files are stored downscaled by this factor relative to the cameras'
       resolution (LLFF's `images_N/`); 1 = full size, and `images_N/`-style prepared copies are
       looked up when reading at a downscale.
+    silhouette_masks: the object masks are black-and-white silhouettes (NeuS/IDR, grey or RGB:
+      a first channel above 0.5 is the object, id 1) rather than 8-bit object-id maps.
     format: the reader's name, for messages.
   """
 
@@ -94,6 +96,7 @@ class Capture:
   depth_unit_scale: float = 1e-3
   file_from_source: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
   file_factor: int = 1
+  silhouette_masks: bool = False
   format: str = ""
 
   def __post_init__(self):

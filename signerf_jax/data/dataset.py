@@ -26,6 +26,9 @@ class Dataset:
     background_color: [3] float32 RGB for bounded scenes (None when the background is real).
     world_from_source: [4, 4] float32 similarity transform from the source's world frame into
       the normalised frame (points: x_normalised = world_from_source @ x_source).
+    alphas: None or [N, H, W] float32 opacity of images that had an alpha channel (`images`
+      holds them composited on `background_color`); lets training see through to other
+      backgrounds.
     masks: None or [N, H, W] float32 in [0, 1]; 1 = pixel is valid for training (nerfstudio
       `mask_path` semantics).
     depths: None or [N, H, W] float32 z-depth in normalised scene units; 0 = unknown.
@@ -45,6 +48,7 @@ class Dataset:
   background_color: np.ndarray | None = None
   world_from_source: np.ndarray = dataclasses.field(
       default_factory=lambda: np.eye(4, dtype=np.float32))
+  alphas: np.ndarray | None = None
   masks: np.ndarray | None = None
   depths: np.ndarray | None = None
   extras: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
@@ -80,6 +84,7 @@ class Dataset:
         images=self.images[indices],
         cameras=self.cameras.take(indices),
         image_names=tuple(self.image_names[i] for i in indices),
+        alphas=take(self.alphas),
         masks=take(self.masks),
         depths=take(self.depths),
         extras={name: array[indices] for name, array in self.extras.items()},

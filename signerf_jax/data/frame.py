@@ -95,14 +95,14 @@ class SceneFrame:
             "scene_units_per_source_unit": round(self.scale, 9),
             "near": self.near, "far": self.far}
 
-  def summary_line(self) -> str:
-    """One line for the command line."""
-    description = self.describe()
-    centre = ", ".join(f"{value:.3g}" for value in description["center_in_source_units"])
-    half = ", ".join(f"{value:.3g}" for value in description["half_size_in_source_units"])
-    return (f"scene frame: {KIND_DESCRIPTIONS[self.kind]}; inner region centred at ({centre}) "
-            f"with half-size ({half}) in the dataset's units ({self.method}); rays "
-            f"{self.near:.3g}..{self.far:.3g} scene units")
+def summary_line(description: dict[str, Any]) -> str:
+  """One line for the command line, from `SceneFrame.describe()`."""
+  centre = ", ".join(f"{value:.3g}" for value in description["center_in_source_units"])
+  half = ", ".join(f"{value:.3g}" for value in description["half_size_in_source_units"])
+  return (f"scene frame: {KIND_DESCRIPTIONS[description['kind']]}; region modelled in detail "
+          f"centred at ({centre}), half-size ({half}) in the dataset's units "
+          f"({description['method']}); rays {description['near']:.3g}..{description['far']:.3g} "
+          "scene units")
 
 
 def classify(cameras: Cameras) -> str:
@@ -194,8 +194,8 @@ def _up_rotation(cameras: Cameras) -> np.ndarray:
   return poses_lib.rotation_between(up, [0.0, 0.0, 1.0])
 
 
-def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None, center=None,
-                         radius=None) -> SceneFrame:
+def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None,
+                         scene_center=None, scene_radius=None) -> SceneFrame:
   """The frame of a 360-degree capture (see the module docstring).
 
   Args:
@@ -203,11 +203,12 @@ def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None, c
     points: None or [P, 3] SfM points (refine the centre, find the nearest content).
     object_sphere: None or (centre, radius) the source gives for its object: used as the
       centre (the inner region still reaches the cameras).
-    center, radius: overrides in source units (the inner region's centre and half-side).
+    scene_center, scene_radius: overrides in source units (the inner region's centre and
+      half-side).
   """
   method = []
-  if center is not None:
-    centre = np.asarray(center, np.float64)
+  if scene_center is not None:
+    centre = np.asarray(scene_center, np.float64)
     method.append("centre given")
   elif object_sphere is not None:
     centre = np.asarray(object_sphere[0], np.float64)
@@ -221,8 +222,8 @@ def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None, c
       method.append("SfM points")
   positions = np.asarray(cameras.positions, np.float64)
   distances = np.linalg.norm(positions - centre, axis=-1)
-  if radius is not None:
-    half_side = float(radius)
+  if scene_radius is not None:
+    half_side = float(scene_radius)
     method.append("radius given")
   else:
     # Cameras inside the L-inf cube: their largest offset along any axis after rotation.
@@ -308,8 +309,8 @@ def guessed_depth_bounds(cameras: Cameras) -> np.ndarray:
 
 
 def estimate_frame(cameras: Cameras, *, kind: str | None = None, points=None,
-                   depth_bounds=None, object_sphere=None, center=None,
-                   radius=None) -> SceneFrame:
+                   depth_bounds=None, object_sphere=None, scene_center=None,
+                   scene_radius=None) -> SceneFrame:
   """The scene frame of a capture from its (source-frame) cameras and what else it knows.
 
   Args:
@@ -318,13 +319,14 @@ def estimate_frame(cameras: Cameras, *, kind: str | None = None, points=None,
     points: None or [P, 3] SfM points.
     depth_bounds: None or [N, 2] per-view content z-depth ranges (forward-facing).
     object_sphere: None or (centre [3], radius) of the object of interest.
-    center, radius: overrides of the inner region in source units (unbounded scenes).
+    scene_center, scene_radius: overrides of the inner region in source units (unbounded
+      scenes).
   Raises:
     InputError: an unknown kind, or "bounded" (bounded scenes come with their frame).
   """
   kind = kind or classify(cameras)
   if kind == "forward_facing":
-    if center is not None or radius is not None:
+    if scene_center is not None or scene_radius is not None:
       raise InputError("a forward-facing frame follows from the views' depth ranges; "
                        "scene_center / scene_radius apply to unbounded scenes",
                        field="scene_center")
@@ -337,6 +339,6 @@ def estimate_frame(cameras: Cameras, *, kind: str | None = None, points=None,
     return dataclasses.replace(frame, method=f"{frame.method} ({method})")
   if kind == "unbounded":
     return object_centric_frame(cameras, points=points, object_sphere=object_sphere,
-                                center=center, radius=radius)
+                                scene_center=scene_center, scene_radius=scene_radius)
   raise InputError(f"cannot estimate a {kind!r} frame from cameras (must be one of "
                    "forward_facing, unbounded)", field="scene_kind")

@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-from signerf_jax.data import blender, llff, nerfstudio, splits, views
+from signerf_jax.data import blender, colmap, llff, nerfstudio, neus, splits, views
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data.capture import Capture, ViewFiles
@@ -23,10 +23,12 @@ from signerf_jax.data.dataset import Dataset
 from signerf_jax.data.frame import SCENE_KINDS, SceneFrame
 from signerf_jax.errors import InputError
 
-FORMATS = ("nerfstudio", "blender", "llff")
+FORMATS = ("nerfstudio", "blender", "llff", "colmap", "neus")
 # What each format is recognised by, for the error when none is found.
 FORMAT_MARKERS = {"nerfstudio": "transforms.json (or transforms_train.json with fl_x)",
-                  "blender": "transforms_train.json", "llff": llff.POSES_NAME}
+                  "blender": "transforms_train.json", "llff": llff.POSES_NAME,
+                  "colmap": "sparse/0/cameras.bin with images.bin (or .txt, in sparse/ or here)",
+                  "neus": " or ".join(neus.CAMERA_FILE_NAMES)}
 
 
 def detect_format(root: str | os.PathLike) -> str:
@@ -42,6 +44,10 @@ def detect_format(root: str | os.PathLike) -> str:
     return "nerfstudio" if nerfstudio.has_intrinsics(_json_or_none(split_file)) else "blender"
   if (root / llff.POSES_NAME).is_file():
     return "llff"
+  if colmap.model_folder(root) is not None:
+    return "colmap"
+  if neus.camera_file(root) is not None:
+    return "neus"
   raise InputError(f"unknown dataset format: none of {list(FORMAT_MARKERS.values())} found",
                    root)
 
@@ -60,7 +66,11 @@ def read_capture(root: str | os.PathLike, downscale: int = 1) -> Capture:
     return nerfstudio.read_capture(root)
   if source_format == "blender":
     return blender.read_capture(root)
-  return llff.read_capture(root, downscale)
+  if source_format == "llff":
+    return llff.read_capture(root, downscale)
+  if source_format == "colmap":
+    return colmap.read_capture(root)
+  return neus.read_capture(root)
 
 
 def scene_frame(capture: Capture, *, scene_kind: str | None = None, scene_center=None,
@@ -82,18 +92,16 @@ def scene_frame(capture: Capture, *, scene_kind: str | None = None, scene_center
                        capture.root, "scene_center")
     return capture.frame if scene_kind is None else dataclasses.replace(capture.frame,
                                                                         kind=scene_kind)
-  center = None
-  if scene_center is not None:
-    center = poses_lib.transform_points(capture.file_from_source,
-                                        _vector(scene_center, "scene_center"))
-  radius = None
+  if scene_center is not None:  # The dataset's units -> the frame its cameras are given in.
+    scene_center = poses_lib.transform_points(capture.file_from_source,
+                                              _vector(scene_center, "scene_center"))
   if scene_radius is not None:
-    radius = float(scene_radius) * poses_lib.similarity_scale(capture.file_from_source)
+    scene_radius = float(scene_radius) * poses_lib.similarity_scale(capture.file_from_source)
   kind = scene_kind or capture.kind
   estimated = frame_lib.estimate_frame(
       capture.cameras, kind="unbounded" if kind == "bounded" else kind, points=capture.points,
-      depth_bounds=capture.depth_bounds, object_sphere=capture.object_sphere, center=center,
-      radius=radius)
+      depth_bounds=capture.depth_bounds, object_sphere=capture.object_sphere,
+      scene_center=scene_center, scene_radius=scene_radius)
   if kind != "bounded":
     return estimated
   # A bounded scene: the same inner region, rays confined to it, a constant background.
@@ -151,13 +159,15 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
                 else np.asarray(background_color, np.float32))
   reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
   chosen = [capture.files[index] for index in selected]
-  images = reader.read_all(chosen, "image", lambda p: views.read_color(p, background), "area",
-                           0.0)
+  color_and_alpha = reader.read_all(
+      chosen, "image", lambda p: views.read_color_and_alpha(p, background), "area", 0.0)
+  images, alphas = color_and_alpha[..., :3], color_and_alpha[..., 3]
   masks = reader.read_all(chosen, "mask", views.read_mask, "area", 1.0)
   depths = reader.read_all(chosen, "depth",
                            lambda p: views.read_depth(p, capture.depth_unit_scale), "nearest",
                            0.0)
-  object_masks = reader.read_all(chosen, "object_mask", views.read_object_ids, "nearest", 0)
+  read_object_ids = views.read_silhouette if capture.silhouette_masks else views.read_object_ids
+  object_masks = reader.read_all(chosen, "object_mask", read_object_ids, "nearest", 0)
   world_from_source = frame.world_from_source @ capture.file_from_source
   return Dataset(
       images=images,
@@ -169,6 +179,7 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
       far=float(frame.far),
       background_color=background if frame.kind == "bounded" else None,
       world_from_source=world_from_source.astype(np.float32),
+      alphas=alphas if np.any(alphas < 1) else None,
       masks=masks,
       depths=None if depths is None else depths * np.float32(frame.scale),
       extras={} if object_masks is None else {"object_masks": object_masks.astype(np.int32)},

@@ -2,15 +2,22 @@
 reader and writer.
 
 The format (https://docs.nerf.studio/quickstart/data_conventions.html): OpenGL camera-to-world
-`transform_matrix` per frame, intrinsics `fl_x fl_y cx cy w h` and OpenCV distortion `k1 k2 p1 p2`
-at the top level or per frame (per-frame values win), `camera_model` OPENCV or PINHOLE,
-per-frame `file_path` (a path without extension is looked up as .png / .jpg), `mask_path`
-(0 = ignore the pixel), `depth_file_path` (z-depth: EXR as stored, 16-bit PNG times
-`depth_unit_scale_factor`, default 1e-3), `applied_transform` (3x4: the file's poses =
-applied_transform @ the poses in the capture's original frame) and the split keys
-`train_filenames`, `val_filenames`, `test_filenames`. A capture may instead come as
+`transform_matrix` per frame, intrinsics `fl_x fl_y cx cy w h` and distortion coefficients at the
+top level or per frame (per-frame values win), per-frame `file_path` (a path without extension
+is looked up as .png / .jpg), `mask_path` (0 = ignore the pixel), `depth_file_path` (z-depth:
+EXR as stored, 16-bit PNG times `depth_unit_scale_factor`, default 1e-3), `applied_transform`
+(3x4: the file's poses = applied_transform @ the poses in the capture's original frame) and the
+split keys `train_filenames`, `val_filenames`, `test_filenames`. A capture may instead come as
 `transforms_train.json` with `transforms_val.json` / `transforms_test.json` that carry their own
 intrinsics (`fl_x`; a file with only `camera_angle_x` is a Blender scene): the files are the split.
+
+`camera_model` (top level) names the lens and its coefficients (absent ones are 0):
+  * PINHOLE, SIMPLE_PINHOLE: none (coefficients in the file are ignored, as nerfstudio does);
+  * OPENCV: `k1 k2 p1 p2 k3`, OpenCV's meaning. nerfstudio's OPENCV also has `k4`, a polynomial
+    r^8 term OpenCV's model lacks (OpenCV's k4 divides): a non-zero `k4` is an error;
+  * OPENCV_FISHEYE: cv2.fisheye's `k1 k2 k3 k4`;
+  * FULL_OPENCV (this project's extension, not read by nerfstudio): OpenCV's rational model,
+    `k1 k2 p1 p2 k3 k4 k5 k6`; the writer uses it only for lenses with a non-zero k4, k5 or k6.
 
 signerf extension (optional, ignored by nerfstudio): a top-level block
   "signerf": {"scene_kind": "bounded" | "forward_facing" | "unbounded",
@@ -37,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.camera import Cameras
+from signerf_jax.camera import DISTORTION_SIZE, Cameras
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data import splits, views
 from signerf_jax.data.capture import FILE_KEYS, Capture, ViewFiles
@@ -50,10 +57,19 @@ SPLIT_FILE_NAMES = {"train": "transforms_train.json", "val": "transforms_val.jso
                     "test": "transforms_test.json"}
 SPLIT_KEYS = {"train": "train_filenames", "val": "val_filenames", "test": "test_filenames"}
 EXTENSION_KEY = "signerf"
-DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
-# Radial terms our camera model does not have: a file using them cannot be read faithfully.
-UNSUPPORTED_DISTORTION_KEYS = ("k3", "k4")
-CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+# Each camera model's distortion keys and their slots in `Cameras.distortion` (OpenCV's order:
+# k1, k2, p1, p2, k3, k4, k5, k6; a fisheye's k1, k2, k3, k4).
+DISTORTION_SLOTS = {
+    "OPENCV": {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4},
+    "FULL_OPENCV": {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4, "k4": 5, "k5": 6, "k6": 7},
+    "OPENCV_FISHEYE": {"k1": 0, "k2": 1, "k3": 2, "k4": 3},
+    "PINHOLE": {},
+    "SIMPLE_PINHOLE": {},
+}
+CAMERA_MODELS = tuple(DISTORTION_SLOTS)
+FISHEYE_MODELS = ("OPENCV_FISHEYE",)
+# OpenCV's rational terms (k4, k5, k6): only FULL_OPENCV holds them.
+RATIONAL_SLOTS = slice(5, 8)
 DEFAULT_DEPTH_UNIT_SCALE = 1e-3
 # Extensions tried, in order, for a `file_path` given without one (instant-NGP captures).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -206,15 +222,20 @@ def _read_cameras(entries) -> Cameras:
     entries: (path, meta, index, frame) per view: its file, that file's top level, its index
       there and the frame itself.
   """
-  cameras = []
+  cameras, camera_models = [], []
   for path, meta, index, frame in entries:
     camera_model = meta.get("camera_model", "OPENCV")
     if camera_model not in CAMERA_MODELS:
       raise InputError(f"unsupported camera model {camera_model!r} (supported: "
                        f"{CAMERA_MODELS})", path, "camera_model")
+    camera_models.append(camera_model)
     cameras.append(_frame_camera(meta, frame, f"frames[{index}]", path, camera_model))
   width, height = cameras[0]["size"]
-  for (path, _, index, _), frame_camera in zip(entries, cameras):
+  fisheye = camera_models[0] in FISHEYE_MODELS
+  for (path, _, index, _), frame_camera, camera_model in zip(entries, cameras, camera_models):
+    if (camera_model in FISHEYE_MODELS) != fisheye:
+      raise InputError(f"{camera_model} and the first frame's {camera_models[0]} mix fisheye and "
+                       "perspective lenses (a dataset has one lens model)", path, "camera_model")
     frame_width, frame_height = frame_camera["size"]
     if (frame_width, frame_height) != (width, height):
       raise InputError(f"image size {frame_width}x{frame_height} differs from the first frame's "
@@ -222,7 +243,7 @@ def _read_cameras(entries) -> Cameras:
                        f"frames[{index}].{'w' if frame_width != width else 'h'}")
   stacked = {key: np.stack([frame_camera[key] for frame_camera in cameras])
              for key in ("camera_to_world", "fx", "fy", "cx", "cy", "distortion")}
-  return Cameras.create(width=width, height=height, **stacked)
+  return Cameras.create(width=width, height=height, fisheye=fisheye, **stacked)
 
 
 def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], prefix: str, path: Path,
@@ -258,9 +279,13 @@ def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], prefix: str, path
 
   width, height = pixels("w"), pixels("h")
   fx = focal_length("fl_x")
-  for key in UNSUPPORTED_DISTORTION_KEYS:
-    if number(key, 0.0) != 0.0:
-      raise InputError("is not supported (only k1, k2, p1, p2 distortion)", path, value(key)[1])
+  if camera_model == "OPENCV" and number("k4", 0.0) != 0.0:
+    raise InputError("is nerfstudio's polynomial r^8 term of OPENCV, which OpenCV's lens model "
+                     "(and this project's) does not have; only 0 can be read", path,
+                     value("k4")[1])
+  distortion = np.zeros(DISTORTION_SIZE)
+  for key, slot in DISTORTION_SLOTS[camera_model].items():
+    distortion[slot] = number(key, 0.0)
   if "transform_matrix" not in frame:
     raise InputError("missing", path, f"{prefix}.transform_matrix")
   return {
@@ -269,8 +294,7 @@ def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], prefix: str, path
       "fy": focal_length("fl_y", fx),
       "cx": number("cx", width / 2),
       "cy": number("cy", height / 2),
-      "distortion": [number(key, 0.0) if camera_model == "OPENCV" else 0.0
-                     for key in DISTORTION_KEYS],
+      "distortion": distortion,
       "camera_to_world": poses_lib.check_camera_to_world(
           frame["transform_matrix"], path, f"{prefix}.transform_matrix"),
   }
@@ -339,7 +363,8 @@ def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
 
   Layout: images/frame_00000.png (RGB), masks/*.png (if `dataset.masks`), depths/*.exr (z-depth,
   if `dataset.depths`), object_masks/*.png (if `dataset.extras["object_masks"]`), and
-  transforms.json with shared intrinsics (per-frame when they differ), OpenCV distortion,
+  transforms.json with shared intrinsics (per-frame when they differ), the simplest camera model
+  that holds the lens (PINHOLE, OPENCV, OPENCV_FISHEYE, or FULL_OPENCV: see the module docstring),
   `applied_transform` = `dataset.world_from_source` (so the original frame is not lost) and the
   signerf block (kind, bounds, background, near/far, `provenance` when given).
 
@@ -353,12 +378,14 @@ def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
   transforms_path.unlink(missing_ok=True)
 
   cameras = dataset.cameras
+  camera_model = _camera_model(cameras)
+  distortion = np.asarray(cameras.distortion)
   intrinsics = {"fl_x": cameras.fx, "fl_y": cameras.fy, "cx": cameras.cx, "cy": cameras.cy}
-  intrinsics.update(zip(DISTORTION_KEYS, np.asarray(cameras.distortion).T))
+  intrinsics.update({key: distortion[:, slot]
+                     for key, slot in DISTORTION_SLOTS[camera_model].items()})
   intrinsics = {key: np.asarray(values).tolist() for key, values in intrinsics.items()}
   shared = {key: values[0] for key, values in intrinsics.items()
             if all(value == values[0] for value in values)}
-  has_distortion = bool(np.any(np.asarray(cameras.distortion) != 0))
   object_masks = dataset.extras.get("object_masks")
 
   written = []
@@ -369,8 +396,7 @@ def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
         [np.asarray(cameras.camera_to_world[index], np.float64), [[0.0, 0.0, 0.0, 1.0]]])
     frame = {"file_path": f"{IMAGE_FOLDER}/{name}.png",
              "transform_matrix": camera_to_world.tolist()}
-    frame.update({key: values[index] for key, values in intrinsics.items()
-                  if key not in shared and (has_distortion or key not in DISTORTION_KEYS)})
+    frame.update({key: values[index] for key, values in intrinsics.items() if key not in shared})
     files.write_image(directory / frame["file_path"], dataset.images[index])
     if dataset.masks is not None:
       frame["mask_path"] = f"{MASK_FOLDER}/{name}.png"
@@ -395,11 +421,10 @@ def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
   if provenance is not None:
     extension["provenance"] = provenance
   meta = {
-      "camera_model": "OPENCV" if has_distortion else "PINHOLE",
+      "camera_model": camera_model,
       "w": cameras.width,
       "h": cameras.height,
-      **{key: value for key, value in shared.items()
-         if has_distortion or key not in DISTORTION_KEYS},
+      **shared,
       "applied_transform": np.asarray(dataset.world_from_source, np.float64)[:3].tolist(),
       EXTENSION_KEY: extension,
       "frames": frames,
@@ -407,6 +432,16 @@ def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
   files.write_json(transforms_path, meta)
   _remove_stale_frame_files(directory, set(written))
   return transforms_path
+
+
+def _camera_model(cameras: Cameras) -> str:
+  """The simplest camera model that holds the cameras' lens exactly."""
+  distortion = np.asarray(cameras.distortion)
+  if cameras.fisheye:
+    return "OPENCV_FISHEYE"
+  if np.any(distortion[:, RATIONAL_SLOTS] != 0):
+    return "FULL_OPENCV"
+  return "OPENCV" if np.any(distortion != 0) else "PINHOLE"
 
 
 def _remove_stale_frame_files(directory: Path, keep: set[str]) -> None:

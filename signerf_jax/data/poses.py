@@ -74,6 +74,22 @@ def llff_to_opengl(rotation_columns: np.ndarray) -> np.ndarray:
   return converted
 
 
+def camera_to_world_from_opencv(rotation, translation) -> np.ndarray:
+  """OpenCV's world-to-camera pose (x_camera = R x_world + t; camera axes right, down, forward,
+  as COLMAP and cv2 give them) -> [..., 3, 4] float64 OpenGL camera-to-world.
+
+  Args:
+    rotation: [..., 3, 3] R; translation: [..., 3] t.
+  """
+  rotation = np.asarray(rotation, np.float64)
+  camera_to_world_rotation = np.swapaxes(rotation, -1, -2)
+  centre = -np.einsum("...ij,...j->...i", camera_to_world_rotation,
+                      np.asarray(translation, np.float64))
+  # OpenCV's down and forward axes are OpenGL's up and backwards, negated.
+  opengl_rotation = camera_to_world_rotation * np.array([1.0, -1.0, -1.0])
+  return np.concatenate([opengl_rotation, centre[..., None]], axis=-1)
+
+
 def similarity(scale: float = 1.0, rotation=None, translation=None) -> np.ndarray:
   """The [4, 4] float64 matrix x -> scale * rotation @ x + translation."""
   matrix = np.eye(4)

@@ -12,19 +12,20 @@ import numpy as np
 from signerf_jax import files
 from signerf_jax.errors import InputError
 
-def read_color(path: str | os.PathLike, background_color) -> np.ndarray:
-  """An RGB image [H, W, 3] float32 in [0, 1]; RGBA is composited on `background_color` ([3]).
+def read_color_and_alpha(path: str | os.PathLike, background_color) -> np.ndarray:
+  """[H, W, 4] float32 in [0, 1]: the RGB image, RGBA composited on `background_color` ([3]),
+  and its opacity (1 for images without alpha).
 
   The alpha is straight (not premultiplied), as Blender and nerfstudio write it.
   """
   image = files.read_image(path)
   if image.shape[-1] == 1:
-    return np.repeat(image, 3, axis=-1)
-  if image.shape[-1] == 4:
-    alpha = image[..., 3:]
-    background = np.asarray(background_color, np.float32)
-    return image[..., :3] * alpha + background * (1.0 - alpha)
-  return image
+    image = np.repeat(image, 3, axis=-1)
+  if image.shape[-1] == 3:
+    return np.concatenate([image, np.ones_like(image[..., :1])], axis=-1)
+  alpha = image[..., 3:]
+  background = np.asarray(background_color, np.float32)
+  return np.concatenate([image[..., :3] * alpha + background * (1.0 - alpha), alpha], axis=-1)
 
 
 def read_mask(path: str | os.PathLike) -> np.ndarray:
@@ -44,6 +45,12 @@ def read_depth(path: str | os.PathLike, png_unit_scale: float) -> np.ndarray:
 def read_object_ids(path: str | os.PathLike) -> np.ndarray:
   """An object-id map [H, W] int32 stored as an 8-bit grey PNG (0 = no object)."""
   return np.round(files.read_image(path)[..., 0] * 255).astype(np.int32)
+
+
+def read_silhouette(path: str | os.PathLike) -> np.ndarray:
+  """An object-id map [H, W] int32 from a black-and-white silhouette (NeuS/IDR masks, grey or
+  RGB): id 1 where the first channel exceeds 0.5, else 0."""
+  return (files.read_image(path)[..., 0] > 0.5).astype(np.int32)
 
 
 def write_object_ids(path: str | os.PathLike, object_ids: np.ndarray) -> None:

@@ -99,10 +99,11 @@ class EditConfig:
 class SelectionConfig:
   """Where to edit (paper, "Selection Modes").
 
-  Coordinates are in the scene frame the NeRF works in (`frame="scene"`: the dataset's
-  normalised frame, the one `signerf render` and the synthetic scenes use) or in the dataset's
-  source frame (`frame="source"`, e.g. the COLMAP frame of a capture), mapped through the
-  dataset's `world_from_source`.
+  Coordinates are in the dataset's own world units (`frame="source"`, the default: e.g. the
+  COLMAP frame of a capture, Blender's frame for a synthetic scene), mapped through the
+  dataset's `world_from_source`, so the same numbers mean the same place whatever frame the NeRF
+  normalises into; or in that normalised scene frame itself (`frame="scene"`, the one
+  `signerf train` prints the source frame against).
 
   Attributes:
     kind: "box" (shape selection) or "proxy" (proxy selection).
@@ -117,7 +118,7 @@ class SelectionConfig:
       footprint centred here (`geometry.mesh.place_on_ground`), scaled so its largest side is
       `ground_size` and turned by `heading_degrees` about the scene's up direction.
     mesh_up: the proxy's own up direction (the shared meshes are +y up).
-    up: the scene's up direction (None: the dataset cameras' mean up vector).
+    up: the up direction, in `frame` (None: the dataset cameras' mean up vector).
     frame: "scene" or "source" (see above).
     dilation_radius, feather_radius: mask growth and soft edge in pixels at 512 pixels
       (`geometry.masks`): the generated region may exceed the selection slightly.
@@ -138,7 +139,7 @@ class SelectionConfig:
   heading_degrees: float = 0.0
   mesh_up: tuple[float, float, float] = (0.0, 1.0, 0.0)
   up: tuple[float, float, float] | None = None
-  frame: str = "scene"
+  frame: str = "source"
   dilation_radius: float = 24.0
   feather_radius: float = 8.0
   min_accumulation: float = 0.5

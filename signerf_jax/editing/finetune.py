@@ -38,7 +38,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from signerf_jax import camera, configs
 from signerf_jax.data.dataset import Dataset
@@ -91,7 +90,8 @@ def random_patches(key, cameras: camera.Cameras, count: int, size: int):
 
 def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
                   loss_settings: FinetuneLosses, state: train.TrainState,
-                  data: train.TrainingData, lpips_params) -> tuple[train.TrainState, dict]:
+                  data: train.TrainingData, progress, lpips_params
+                  ) -> tuple[train.TrainState, dict]:
   """One fine-tuning step (pure; see the module docstring for the loss)."""
   ray_key, render_key = jax.random.split(jax.random.fold_in(state.key, state.step))
   if loss_settings.uses_lpips:
@@ -128,11 +128,7 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     return loss, statistics
 
   gradients, statistics = jax.grad(loss_fn, has_aux=True)(state.variables["params"])
-  optimizer = train.make_optimizer(config)
-  updates, optimizer_state = optimizer.update(gradients, state.optimizer_state,
-                                              state.variables["params"])
-  variables = {**state.variables, "params": optax.apply_updates(state.variables["params"],
-                                                                updates)}
+  variables, optimizer_state = train.apply_gradients(config, state, gradients, progress)
   statistics["psnr"] = -10.0 * jnp.log10(jnp.maximum(statistics.pop("mse"), 1e-10))
   return train.TrainState(state.step + 1, variables, optimizer_state, state.key), statistics
 
@@ -140,8 +136,8 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
 @functools.lru_cache(maxsize=8)
 def _jitted_steps(model: nerf_model.NerfModel, config: train.TrainConfig,
                   loss_settings: FinetuneLosses):
-  step_fn = jax.jit(lambda state, data, lpips_params: finetune_step(
-      model, config, loss_settings, state, data, lpips_params), donate_argnums=0)
+  step_fn = jax.jit(lambda state, data, progress, lpips_params: finetune_step(
+      model, config, loss_settings, state, data, progress, lpips_params), donate_argnums=0)
   occupancy_fn = jax.jit(lambda state: train.occupancy_step(model, config, state),
                          donate_argnums=0)
   return step_fn, occupancy_fn
@@ -185,14 +181,14 @@ class FinetuneTrainer(train.Trainer):
     step_fn, occupancy_fn = _jitted_steps(self.model, self.config, self.loss_settings)
     config, uses_occupancy = self.config, self.model.capacity.sampler == "occupancy"
 
-    def step(state, data):
+    def step(state, data, progress):
       step_index = int(state.step)
       if (uses_occupancy and step_index >= config.occupancy_warmup_steps
           and step_index % config.occupancy_update_every == 0):
         state = occupancy_fn(state)
         if self.editable_cells is not None:
           state = _keep_sampled(state, self.editable_cells)
-      return step_fn(state, data, self.lpips_params)
+      return step_fn(state, data, progress, self.lpips_params)
 
     self._step_fn = step
 

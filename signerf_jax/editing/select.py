@@ -95,10 +95,14 @@ def load_proxy(name: str) -> mesh_lib.Mesh:
     raise InputError(error.problem, error.path, "proxy") from None
 
 
-def _scene_up(config: SelectionConfig, dataset: Dataset) -> np.ndarray:
+def _up(config: SelectionConfig, dataset: Dataset) -> np.ndarray:
+  """The up direction in the configured frame: `config.up`, or the cameras' mean up."""
   if config.up is not None:
     return np.asarray(config.up, np.float64)
-  return reference_cameras.scene_up(dataset.cameras)
+  up = reference_cameras.scene_up(dataset.cameras)  # The dataset's cameras are in the scene frame.
+  if config.frame == "source":
+    up = np.linalg.inv(dataset.world_from_source[:3, :3]) @ up
+  return up
 
 
 def place_proxy(config: SelectionConfig, dataset: Dataset) -> mesh_lib.Mesh:
@@ -107,10 +111,8 @@ def place_proxy(config: SelectionConfig, dataset: Dataset) -> mesh_lib.Mesh:
   if config.ground_position is not None:
     if not config.ground_size > 0:
       raise InputError(f"must be positive, got {config.ground_size}", field="ground_size")
-    up = _scene_up(config, dataset)
-    if config.frame == "source":  # `up` is a scene direction; place in the source frame.
-      up = np.linalg.inv(dataset.world_from_source[:3, :3]) @ up
-    placed = mesh_lib.place_on_ground(proxy, config.ground_position, config.ground_size, up=up,
+    placed = mesh_lib.place_on_ground(proxy, config.ground_position, config.ground_size,
+                                      up=_up(config, dataset),
                                       mesh_up=config.mesh_up,
                                       heading_degrees=config.heading_degrees)
   else:

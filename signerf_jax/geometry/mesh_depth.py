@@ -3,7 +3,8 @@
 Tile-binned ray casting with a scatter-min z-buffer (the binning GPU rasterisers use), done in
 each camera's frame, where every ray starts at the origin:
   1. Every pixel-centre ray is given by its undistorted normalised image coordinates (x, y), the
-     same rays `camera.pixel_rays` shoots (lens distortion is honoured). The image is cut into
+     same rays `camera.pixel_rays` shoots (lens distortion is honoured; a fisheye's rays 90
+     degrees or more off its axis, which have no z-depth, hit nothing). The image is cut into
      `tile_size`-pixel square tiles; each column of tiles gets the range of its rays' x, each row
      the range of y (widened to be monotone along the grid, so a rectangle of the image plane
      maps to a contiguous block of tiles).
@@ -68,12 +69,15 @@ class MeshDepth:
 
 
 def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index,
-                            tile_size: int) -> jax.Array:
+                            tile_size: int) -> tuple[jax.Array, jax.Array]:
   """Undistorted OpenCV normalised coordinates (x right, y down) of every pixel-centre ray.
 
   Returns:
-    [tiles_down, tiles_across, tile_size * tile_size, 2]. The grid is padded to whole tiles by
-    repeating the last row and column, so padding never widens a tile's ray range.
+    plane: [tiles_down, tiles_across, tile_size * tile_size, 2]. The grid is padded to whole
+      tiles by repeating the last row and column, so padding never widens a tile's ray range.
+    on_plane: [tiles_down, tiles_across, tile_size * tile_size] bool, the ray meets the z = 1
+      plane: all but a fisheye's rays 90 degrees or more off the axis, which hit nothing here
+      (their z-depth would not be positive; `camera.undistort` clamps their coordinates).
   """
   tiles_down = -(-cameras.height // tile_size)
   tiles_across = -(-cameras.width // tile_size)
@@ -81,14 +85,25 @@ def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index,
   columns = jnp.minimum(jnp.arange(tiles_across * tile_size), cameras.width - 1) + 0.5
   rows, columns = jnp.meshgrid(rows.astype(jnp.float32), columns.astype(jnp.float32),
                                indexing="ij")
-  x = (columns - cameras.cx[camera_index]) / cameras.fx[camera_index]
-  y = (rows - cameras.cy[camera_index]) / cameras.fy[camera_index]
+  x_distorted = (columns - cameras.cx[camera_index]) / cameras.fx[camera_index]
+  y_distorted = (rows - cameras.cy[camera_index]) / cameras.fy[camera_index]
   distortion = cameras.distortion[camera_index]
-  # Same rays as `camera.pixel_rays`; the Newton iterations are skipped for an ideal pinhole.
-  x, y = jax.lax.cond(jnp.any(distortion != 0),
-                      lambda: camera_lib.undistort(x, y, distortion), lambda: (x, y))
+  # Same rays as `camera.pixel_rays`.
+  if cameras.fisheye:
+    x, y = camera_lib.undistort(x_distorted, y_distorted, distortion, fisheye=True)
+    on_plane = camera_lib.fisheye_angle(x_distorted, y_distorted,
+                                        distortion) < camera_lib.MAX_PLANE_ANGLE
+  else:
+    # The Newton iterations are skipped for an ideal pinhole.
+    x, y = jax.lax.cond(jnp.any(distortion != 0),
+                        lambda: camera_lib.undistort(x_distorted, y_distorted, distortion),
+                        lambda: (x_distorted, y_distorted))
+    on_plane = jnp.ones_like(x, bool)
   plane = jnp.stack([x, y], -1).reshape(tiles_down, tile_size, tiles_across, tile_size, 2)
-  return jnp.swapaxes(plane, 1, 2).reshape(tiles_down, tiles_across, tile_size * tile_size, 2)
+  on_plane = on_plane.reshape(tiles_down, tile_size, tiles_across, tile_size)
+  pixels_per_tile = tile_size * tile_size
+  return (jnp.swapaxes(plane, 1, 2).reshape(tiles_down, tiles_across, pixels_per_tile, 2),
+          jnp.swapaxes(on_plane, 1, 2).reshape(tiles_down, tiles_across, pixels_per_tile))
 
 
 def _from_tiles(array: jax.Array, height: int, width: int, tile_size: int) -> jax.Array:
@@ -157,7 +172,7 @@ def _pair_counts(first, last, num_triangles):
 def _single_camera_depth(triangles: jax.Array, num_triangles, cameras: camera_lib.Cameras,
                          camera_index, tile_size: int, capacity: int) -> MeshDepth:
   """Mesh depth for one camera; the first `num_triangles` of [F, 3, 3] `triangles` count."""
-  plane = _tile_plane_coordinates(cameras, camera_index, tile_size)
+  plane, on_plane = _tile_plane_coordinates(cameras, camera_index, tile_size)
   corners = _camera_frame(triangles, cameras, camera_index)
   first, last = _tile_ranges(corners, plane)
   counts = _pair_counts(first, last, num_triangles)
@@ -194,8 +209,8 @@ def _single_camera_depth(triangles: jax.Array, num_triangles, cameras: camera_li
   scale = jnp.abs(determinant)
   tolerance = BARYCENTRIC_TOLERANCE * scale
   u, v, t = products[:, 1] * sign, products[:, 2] * sign, t_numerator * sign
-  hits = (valid[:, None] & (scale > 0) & (u >= -tolerance) & (v >= -tolerance)
-          & (u + v <= scale + tolerance) & (t > 0))
+  hits = (valid[:, None] & on_plane[tile_row, tile_column] & (scale > 0) & (u >= -tolerance)
+          & (v >= -tolerance) & (u + v <= scale + tolerance) & (t > 0))
   depths = jnp.where(hits, t / jnp.where(scale > 0, scale, 1.0), jnp.inf)
 
   pixel = ((tile_row * tiles_across + tile_column)[:, None] * pixels_per_tile
@@ -234,8 +249,8 @@ def count_pairs(triangles: jax.Array, cameras: camera_lib.Cameras, tile_size: in
   num_triangles = triangles.shape[0] if num_triangles is None else num_triangles
 
   def count(camera_index):
-    first, last = _tile_ranges(_camera_frame(triangles, cameras, camera_index),
-                               _tile_plane_coordinates(cameras, camera_index, tile_size))
+    plane, _ = _tile_plane_coordinates(cameras, camera_index, tile_size)
+    first, last = _tile_ranges(_camera_frame(triangles, cameras, camera_index), plane)
     return jnp.sum(_pair_counts(first, last, num_triangles))
 
   return jax.lax.map(count, jnp.arange(cameras.num_cameras))

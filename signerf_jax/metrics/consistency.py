@@ -220,13 +220,15 @@ def fundamental_inliers(first_points: np.ndarray, second_points: np.ndarray,
 
 def ideal_pixels(cameras: camera_lib.Cameras, keypoints: list[np.ndarray]) -> list[np.ndarray]:
   """Per view, [K, 3] homogeneous undistorted pixel positions (this project's convention, pixel
-  centres at +0.5) of OpenCV keypoints [K, 2]; all views are undistorted in one call."""
+  centres at +0.5) of OpenCV keypoints [K, 2]; all views are undistorted in one call (a
+  fisheye's keypoints 90 degrees or more off its axis have no pinhole position: they come back
+  clamped, see `camera.undistort`)."""
   view = np.concatenate([np.full(len(points), index) for index, points in enumerate(keypoints)])
   points = np.concatenate(keypoints).reshape(-1, 2) + 0.5
   fx, fy = (np.asarray(value, np.float64)[view] for value in (cameras.fx, cameras.fy))
   cx, cy = (np.asarray(value, np.float64)[view] for value in (cameras.cx, cameras.cy))
   x, y = camera_lib.undistort((points[:, 0] - cx) / fx, (points[:, 1] - cy) / fy,
-                              np.asarray(cameras.distortion)[view])
+                              np.asarray(cameras.distortion)[view], cameras.fisheye)
   ideal = np.stack([np.asarray(x) * fx + cx, np.asarray(y) * fy + cy, np.ones(len(view))], -1)
   return np.split(ideal, np.cumsum([len(points) for points in keypoints])[:-1])
 

@@ -38,6 +38,7 @@ class SceneInfo:
     num_images: training images (for appearance embeddings).
     width, height: training image size in pixels.
     pixel_footprint: scene units one pixel spans at the typical camera-to-scene distance.
+    camera_distance: the cameras' median distance to the centre of the bounds (scene units).
   """
 
   bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
@@ -49,6 +50,7 @@ class SceneInfo:
   width: int
   height: int
   pixel_footprint: float
+  camera_distance: float
 
   @classmethod
   def from_dataset(cls, dataset) -> "SceneInfo":
@@ -68,6 +70,7 @@ class SceneInfo:
         width=int(dataset.width),
         height=int(dataset.height),
         pixel_footprint=float(np.median(distances / focal)),
+        camera_distance=float(np.median(distances)),
     )
 
   @classmethod
@@ -108,6 +111,13 @@ class Capacity:
     proposal_samples: intervals per ray for each proposal network (proposal sampler).
     samples_per_ray: intervals per ray for the radiance field (proposal sampler).
     proposal_finest_resolution, proposal_log2_table_size: the proposal networks' grids.
+    near_gradient_scaling: scale each sample's gradients by its squared distance from the
+      camera, up to the cameras' distance to the scene ("Floaters No More";
+      `losses.near_camera_gradient_scaling`), against floaters in front of the cameras.
+    coarse_to_fine: fraction of training over which the radiance field's finer grid levels
+      are switched on one after another (`encoding.level_weights_at`); 0: all from the start.
+    pose_refinement: train a pose correction per training camera (`camera.refine_rays`);
+      held-out views keep their given poses.
   """
 
   contract: bool
@@ -130,6 +140,9 @@ class Capacity:
   samples_per_ray: int = 24
   proposal_finest_resolution: int = 128
   proposal_log2_table_size: int = 16
+  near_gradient_scaling: bool = False
+  coarse_to_fine: float = 0.0
+  pose_refinement: bool = False
 
   @classmethod
   def from_json(cls, value: Mapping[str, Any]) -> "Capacity":
@@ -220,5 +233,34 @@ def derive_capacity(scene: SceneInfo,
       samples_per_ray=samples_per_ray,
       proposal_finest_resolution=min(finest, 256),
       proposal_log2_table_size=min(log2_table_size, 17),
+      # Real captures put cameras among the content they see; synthetic bounded scenes do not.
+      near_gradient_scaling=not bounded,
   )
   return dataclasses.replace(capacity, **dict(overrides or {}))
+
+
+def describe(capacity: Capacity) -> str:
+  """One line saying what the model spends its capacity and regularisation on."""
+  if capacity.sampler == "occupancy":
+    sampling = f"occupancy-grid sampling ({capacity.march_steps} steps per ray)"
+  else:
+    counts = " > ".join(map(str, (*capacity.proposal_samples, capacity.samples_per_ray)))
+    sampling = f"proposal sampling ({counts} samples per ray)"
+  parts = [
+      "contracted unbounded space" if capacity.contract else "a bounded region",
+      f"{capacity.num_levels} grid levels {capacity.base_resolution}..{capacity.finest_resolution}"
+      f" with up to 2^{capacity.log2_table_size} rows each",
+      sampling,
+      f"{capacity.rays_per_batch} rays per step",
+      "the constant background colour" if capacity.background == "constant"
+      else "the background modelled by the field",
+  ]
+  if capacity.appearance_embedding:
+    parts.append("per-image appearance codes")
+  if capacity.near_gradient_scaling:
+    parts.append("near-camera gradient scaling")
+  if capacity.coarse_to_fine > 0:
+    parts.append(f"coarse-to-fine grid levels over {capacity.coarse_to_fine:.0%} of training")
+  if capacity.pose_refinement:
+    parts.append("camera pose refinement")
+  return "model: " + ", ".join(parts)

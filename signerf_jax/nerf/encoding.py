@@ -105,13 +105,16 @@ def _corner_rows(layout: GridLayout, cells: jax.Array) -> jax.Array:
   return (rows + np.asarray(layout.offsets, np.uint32)).astype(jnp.int32)
 
 
-def hash_grid_encode(table: jax.Array, layout: GridLayout, points: jax.Array) -> jax.Array:
+def hash_grid_encode(table: jax.Array, layout: GridLayout, points: jax.Array,
+                     level_weights: jax.Array | None = None) -> jax.Array:
   """Trilinearly interpolated features of every level at `points`.
 
   Args:
     table: [layout.num_rows, F] float features.
     layout: the static grid layout.
     points: [..., 3] positions in [0, 1]^3 (values outside are clamped to the border).
+    level_weights: None or [L] factors on each level's features (coarse-to-fine training:
+      `level_weights_at`); a zero level gets no gradient either.
   Returns:
     [..., L * F] features, level-major.
   """
@@ -127,7 +130,22 @@ def hash_grid_encode(table: jax.Array, layout: GridLayout, points: jax.Array) ->
     weight = jnp.prod(jnp.where(corner == 1, fraction, 1.0 - fraction), axis=-1)  # [..., L]
     corner_features = table.at[rows].get(mode="promise_in_bounds")  # [..., L, F]
     features = features + weight[..., None] * corner_features
+  if level_weights is not None:
+    features = features * level_weights[:, None]
   return features.reshape(*points.shape[:-1], layout.output_dim)
+
+
+def level_weights_at(num_levels: int, progress, anneal_fraction: float) -> jax.Array:
+  """[L] coarse-to-fine weights of the grid levels at training `progress` in [0, 1].
+
+  The coarsest level is on from the start; the others fade in one after another (each over an
+  equal share) until `anneal_fraction` of training, so the field first fits what all views
+  agree on coarsely before fine levels can memorise single views (Neuralangelo, FreeNeRF).
+  """
+  if num_levels == 1 or anneal_fraction <= 0:
+    return jnp.ones(num_levels, jnp.float32)
+  unlocked = jnp.clip(progress / anneal_fraction, 0.0, 1.0) * (num_levels - 1)
+  return jnp.clip(unlocked - jnp.arange(num_levels, dtype=jnp.float32) + 1.0, 0.0, 1.0)
 
 
 class HashGridEncoding(nn.Module):
@@ -137,14 +155,14 @@ class HashGridEncoding(nn.Module):
   init_scale: float = 1e-4
 
   @nn.compact
-  def __call__(self, points: jax.Array) -> jax.Array:
-    """points: [..., 3] in [0, 1]^3 -> [..., L * F] features."""
+  def __call__(self, points: jax.Array, level_weights: jax.Array | None = None) -> jax.Array:
+    """points: [..., 3] in [0, 1]^3 -> [..., L * F] features (`hash_grid_encode`)."""
     table = self.param(
         "table",
         lambda key, shape: jax.random.uniform(key, shape, jnp.float32, -self.init_scale,
                                               self.init_scale),
         (self.layout.num_rows, self.layout.features_per_level))
-    return hash_grid_encode(table, self.layout, points)
+    return hash_grid_encode(table, self.layout, points, level_weights)
 
 
 def spherical_harmonics(directions: jax.Array, degree: int = 4) -> jax.Array:

@@ -101,30 +101,34 @@ class RadianceField(nn.Module):
       self.appearance = nn.Embed(self.num_appearance_embeddings, self.appearance_features,
                                  embedding_init=nn.initializers.zeros)
 
-  def _geometry(self, points):
-    raw = self.density_mlp(self.encoding(points))
+  def _geometry(self, points, level_weights):
+    raw = self.density_mlp(self.encoding(points, level_weights))
     return truncated_exp(raw[..., 0] + jnp.log(self.initial_density)), raw[..., 1:]
 
-  def density(self, points):
+  def density(self, points, level_weights=None):
     """points: [..., 3] unit cube -> [...] densities."""
-    return self._geometry(points)[0]
+    return self._geometry(points, level_weights)[0]
 
-  def __call__(self, points, directions, appearance_indices=None):
+  def __call__(self, points, directions, appearance_indices=None, level_weights=None):
     """Density and colour.
 
     Args:
       points: [..., 3] unit cube.
       directions: [..., 3] unit vectors.
-      appearance_indices: None or [...] int32 image index; negative = no embedding (novel views).
+      appearance_indices: None or [...] int32 image index; negative = a novel view (the mean code).
+      level_weights: None or [L] coarse-to-fine weights of the grid's levels.
     Returns:
       density [...] >= 0 and rgb [..., 3] in [0, 1].
     """
-    density, geometry = self._geometry(points)
+    density, geometry = self._geometry(points, level_weights)
     inputs: Sequence[jax.Array] = [geometry, spherical_harmonics(directions, self.sh_degree)]
     if self.num_appearance_embeddings:
       indices = jnp.zeros(points.shape[:-1], jnp.int32) if appearance_indices is None else (
           appearance_indices)
       embedding = self.appearance(jnp.clip(indices, 0, self.num_appearance_embeddings - 1))
-      inputs.append(embedding * (indices >= 0)[..., None])
+      # A novel view has no code of its own: it gets the training views' average appearance
+      # (nerfacto's choice), not the zero code, which training never anchors.
+      average = jnp.mean(self.appearance.embedding, axis=0)
+      inputs.append(jnp.where((indices >= 0)[..., None], embedding, average))
     rgb = nn.sigmoid(self.color_mlp(jnp.concatenate(inputs, axis=-1)))
     return density, rgb

@@ -1,4 +1,5 @@
-"""Training losses: weighted colour error and the proposal (interlevel) loss of mip-NeRF 360."""
+"""Training losses and regularisers: weighted colour error, mip-NeRF 360's distortion and
+proposal (interlevel) losses, and the near-camera gradient scaling of "Floaters No More"."""
 
 from __future__ import annotations
 
@@ -88,3 +89,38 @@ def interlevel_loss(edges, weights, proposals, ray_weights):
     total = total + jnp.sum(ray_weights * jnp.sum(excess, axis=-1)) / jnp.maximum(
         jnp.sum(ray_weights), 1e-8)
   return total
+
+
+@jax.custom_vjp
+def scale_gradient(values, scale):
+  """The identity on `values`, whose gradient is multiplied by `scale` (broadcast against it)."""
+  return values
+
+
+def _scale_gradient_forward(values, scale):
+  return values, scale
+
+
+def _scale_gradient_backward(scale, gradient):
+  return gradient * scale, jnp.zeros_like(scale)
+
+
+scale_gradient.defvjp(_scale_gradient_forward, _scale_gradient_backward)
+
+
+def near_camera_gradient_scaling(densities, rgbs, edges, distance_unit: float):
+  """Floaters No More (Philip & Deschaintre, EGSR 2023): each sample's density and colour
+  gradients are scaled by min(1, (t / distance_unit)^2), t its distance from the camera.
+
+  Space near a camera is seen by few rays but covers many pixels of them, so it receives large
+  gradients from every view's errors and grows floaters that explain one view's pixels; the
+  quadratic falloff evens out that density of gradient. Values are unchanged.
+
+  Args:
+    densities: [R, N]; rgbs: [R, N, 3]; edges: [R, N + 1] of the samples.
+    distance_unit: distance (scene units) from which gradients are unscaled (the cameras'
+      distance to the scene, as nerfstudio's unit-scaled scenes use 1).
+  """
+  distances = 0.5 * (edges[..., 1:] + edges[..., :-1])
+  scale = jnp.minimum(jax.lax.stop_gradient(distances) / distance_unit, 1.0)**2
+  return scale_gradient(densities, scale), scale_gradient(rgbs, scale[..., None])

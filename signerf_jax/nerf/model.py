@@ -1,8 +1,10 @@
 """The NeRF as pure functions over (model, variables): fields + sampling + volume rendering.
 
 `NerfModel` is static (hashable; it fixes every shape); `variables` is the pytree that changes:
-  {"params": {"field": ..., "proposal_0": ..., ...},    # trained by the optimizer
+  {"params": {"field": ..., "proposal_0": ..., ...,     # trained by the optimizer
+              "camera_adjustments": [N, 6]},             # pose refinement only
    "occupancy": [R, R, R] float32,                       # occupancy sampler only, not trained
+   "level_weights": [L] float32,                         # coarse-to-fine training only
    "original": {"params": ..., "occupancy": ...}}        # edit regions only, frozen
 
 An edited scene can be a NeRF with an *edit region*: a box inside which its own field is
@@ -24,7 +26,7 @@ import numpy as np
 
 from signerf_jax.camera import Rays
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import occupancy, sampling, volume
+from signerf_jax.nerf import losses, occupancy, sampling, volume
 from signerf_jax.nerf.capacity import Capacity, SceneInfo
 from signerf_jax.nerf.encoding import grid_layout
 from signerf_jax.nerf.fields import DensityField, RadianceField
@@ -38,6 +40,8 @@ OCCUPANCY_DECAY = 0.95
 INITIAL_OPTICAL_DEPTH = 1.0
 # Proposal networks only shape the sampling: a few levels suffice (nerfacto uses 5).
 PROPOSAL_LEVELS = 5
+# The params entry of per-camera pose corrections (`camera.refine_rays`).
+POSE_ADJUSTMENTS = "camera_adjustments"
 
 Variables = dict[str, Any]
 
@@ -135,24 +139,29 @@ def init_variables(model: NerfModel, key) -> Variables:
       "params"]}
   for index, (field, field_key) in enumerate(zip(model.proposal_fields, keys[1:])):
     params[f"proposal_{index}"] = field.init(field_key, points)["params"]
+  if model.capacity.pose_refinement:
+    params[POSE_ADJUSTMENTS] = jnp.zeros((model.scene.num_images, 6), jnp.float32)
   variables = {"params": params}
   if model.capacity.sampler == "occupancy":
     variables["occupancy"] = occupancy.initial_grid(model.capacity.occupancy_resolution)
+  if model.capacity.coarse_to_fine > 0:
+    # Every level on: what a trained field renders with. Training sets them by its progress.
+    variables["level_weights"] = jnp.ones(model.capacity.num_levels, jnp.float32)
   if model.edit_region is not None:
     variables["original"] = init_variables(model.original, key)
   return variables
 
 
-def field_density(model: NerfModel, params, unit_points):
+def field_density(model: NerfModel, variables: Variables, unit_points):
   """The radiance field's density at unit-cube points [..., 3] -> [...]."""
-  return model.field.apply({"params": params["field"]}, unit_points,
-                           method=RadianceField.density)
+  return model.field.apply({"params": variables["params"]["field"]}, unit_points,
+                           variables.get("level_weights"), method=RadianceField.density)
 
 
 def update_occupancy(model: NerfModel, variables: Variables, key, update_index) -> Variables:
   """One occupancy-grid refresh (a slice of cells; see `occupancy.update`)."""
   grid = occupancy.update(
-      variables["occupancy"], lambda points: field_density(model, variables["params"], points),
+      variables["occupancy"], lambda points: field_density(model, variables, points),
       key, update_index, cells_per_update=4 * model.capacity.samples_per_batch,
       decay=OCCUPANCY_DECAY)
   return {**variables, "occupancy": grid}
@@ -176,7 +185,8 @@ def _finish_edges(model: NerfModel, edges):
   return edges
 
 
-def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, training: bool):
+def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, training: bool,
+                background=None):
   """Renders rays [R] (flat batch).
 
   Args:
@@ -186,6 +196,7 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
     key: PRNG key for stratified jitter (ignored when not training).
     training: jitter samples, use appearance codes of `rays.camera_indices`, and (occupancy
       sampler) drop rays that overflow the fixed sample budget instead of evaluating them all.
+    background: None (the model's background) or [R, 3] colours seen through empty space.
   Returns:
     outputs: `volume.volume_render`'s dict, plus "ray_complete" [R] bool (False for dropped rays).
     aux: terms for the losses and statistics, of the trained field alone (inside the edit
@@ -196,15 +207,17 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
   if model.edit_region is None:
     samples, ray_complete, aux = _field_samples(model, variables, rays, key, training,
                                                 _ray_range(model, rays), finish=True)
-    outputs = volume.volume_render(*samples, rays.cos_to_optical_axis, model.background)
+    outputs = volume.volume_render(*samples, rays.cos_to_optical_axis,
+                                   model.background if background is None else background)
     aux.update(edges=samples[2], weights=outputs["weights"])
   else:
-    outputs, ray_complete, aux = _render_edit(model, variables, rays, key, training)
+    outputs, ray_complete, aux = _render_edit(model, variables, rays, key, training, background)
   outputs["ray_complete"] = ray_complete
   return outputs, aux
 
 
-def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, training: bool):
+def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, training: bool,
+                 background):
   """An edit region's rendering: the trained field on each ray's stretch inside the region, the
   frozen original field (`variables["original"]`) before and after it, composited as one field
   (`volume.merge_samples`)."""
@@ -228,7 +241,8 @@ def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, traini
   aux.update(edges=inner[2], weights=volume.compute_weights(inner[0], inner[2])[0],
              samples_evaluated=aux["samples_evaluated"] + original_aux["samples_evaluated"])
   outputs = volume.volume_render(*volume.merge_samples(outer, inner, t_in, t_out),
-                                 rays.cos_to_optical_axis, original.background)
+                                 rays.cos_to_optical_axis,
+                                 original.background if background is None else background)
   return outputs, outer_complete & inner_complete, aux
 
 
@@ -244,8 +258,16 @@ def _field_samples(model: NerfModel, variables: Variables, rays: Rays, key, trai
     {"proposals", "samples_evaluated"} (see `render_rays`).
   """
   if model.capacity.sampler == "occupancy":
-    return _occupancy_samples(model, variables, rays, key, training, ray_range, finish)
-  return _proposal_samples(model, variables, rays, key, training, ray_range, finish)
+    samples, ray_complete, aux = _occupancy_samples(model, variables, rays, key, training,
+                                                    ray_range, finish)
+  else:
+    samples, ray_complete, aux = _proposal_samples(model, variables, rays, key, training,
+                                                   ray_range, finish)
+  if training and model.capacity.near_gradient_scaling:
+    densities, rgbs, edges = samples
+    samples = (*losses.near_camera_gradient_scaling(densities, rgbs, edges,
+                                                     model.scene.camera_distance), edges)
+  return samples, ray_complete, aux
 
 
 def _appearance(model: NerfModel, rays: Rays, training: bool):
@@ -272,7 +294,7 @@ def _occupancy_samples(model, variables, rays, key, training, ray_range, finish)
     ray_index = safe // mask.shape[1]
     density, rgb = model.field.apply({"params": variables["params"]["field"]},
                                      unit_points.reshape(-1, 3)[safe], directions[ray_index],
-                                     appearance[ray_index])
+                                     appearance[ray_index], variables.get("level_weights"))
     return jnp.where(indices < mask.size, density, 0.0), rgb
 
   def scatter(target, indices, values):
@@ -351,7 +373,7 @@ def _proposal_samples(model, variables, rays, key, training, ray_range, finish):
   directions = jnp.broadcast_to(rays.directions[..., None, :], sample_shape + (3,))
   appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
   density, rgb = model.field.apply({"params": params["field"]}, points_of(edges), directions,
-                                   appearance)
+                                   appearance, variables.get("level_weights"))
   samples = sum(capacity.proposal_samples) + capacity.samples_per_ray
   return ((density, rgb, finished(edges)), jnp.ones(rays.shape, bool),
           {"proposals": proposals, "samples_evaluated": jnp.int32(samples * rays.shape[0])})

@@ -16,15 +16,23 @@ from signerf_jax import camera, files
 from signerf_jax.nerf import model as nerf_model
 
 # Outputs copied back per pixel (weights stay on device: they are per sample).
-IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance")
+IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "near_weight")
 
 
 @functools.partial(jax.jit, static_argnums=(0, 4))
-def _render_chunk(model: nerf_model.NerfModel, variables, rays: camera.Rays, start, chunk_size):
-  """Renders rays[start:start + chunk_size] (a traced start: one compilation for all chunks)."""
+def _render_chunk(model: nerf_model.NerfModel, variables, rays: camera.Rays, start, chunk_size,
+                  near_distance):
+  """Renders rays[start:start + chunk_size] (a traced start: one compilation for all chunks).
+
+  "near_weight" is the render weight of the samples nearer to the camera than `near_distance`
+  (scene units, traced): what near-camera floaters contribute.
+  """
   chunk = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, chunk_size), rays)
   outputs, _ = nerf_model.render_rays(model, variables, chunk, jax.random.PRNGKey(0),
                                       training=False)
+  edges = outputs["edges"]
+  near = 0.5 * (edges[..., 1:] + edges[..., :-1]) < near_distance
+  outputs["near_weight"] = jnp.sum(outputs["weights"] * near, axis=-1)
   return {name: outputs[name] for name in IMAGE_OUTPUTS}
 
 
@@ -33,14 +41,16 @@ _image_rays = jax.jit(camera.image_rays)
 
 
 def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Rays,
-                        chunk_size: int = 4096) -> dict[str, np.ndarray]:
+                        chunk_size: int = 4096, near_distance: float = 0.0
+                        ) -> dict[str, np.ndarray]:
   """Renders any number of rays in fixed-size chunks (the last one padded), so memory stays
   bounded and every chunk reuses one compiled function.
 
   Args:
     rays: Rays of any shape [...].
+    near_distance: scene units; "near_weight" is the weight nearer to the camera than this.
   Returns:
-    numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance [...].
+    numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance, near_weight [...].
   """
   shape = rays.shape
   flat = rays.reshape(-1)
@@ -48,21 +58,26 @@ def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Ray
   padded = int(np.ceil(count / chunk_size)) * chunk_size
   flat = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - count, 0)]),
                       flat)
-  pieces = [jax.device_get(_render_chunk(model, variables, flat, start, chunk_size))
+  near_distance = jnp.float32(near_distance)
+  pieces = [jax.device_get(_render_chunk(model, variables, flat, start, chunk_size,
+                                         near_distance))
             for start in range(0, padded, chunk_size)]
   return {name: np.concatenate([piece[name] for piece in pieces])[:count].reshape(
       shape + pieces[0][name].shape[1:]) for name in IMAGE_OUTPUTS}
 
 
 def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
-                   chunk_size: int = 4096) -> dict[str, np.ndarray]:
+                   chunk_size: int = 4096, near_distance: float = 0.0
+                   ) -> dict[str, np.ndarray]:
   """Renders every camera.
 
   Returns:
     rgb [N, H, W, 3] in [0, 1]; accumulation [N, H, W]; depth, median_depth [N, H, W] z-depth and
-    distance [N, H, W] ray distance, in scene units (the far bound where nothing was hit).
+    distance [N, H, W] ray distance, in scene units (the far bound where nothing was hit);
+    near_weight [N, H, W], the weight nearer than `near_distance` to the camera.
   """
-  frames = [render_rays_chunked(model, variables, _image_rays(cameras, index), chunk_size)
+  frames = [render_rays_chunked(model, variables, _image_rays(cameras, index), chunk_size,
+                                near_distance)
             for index in range(cameras.num_cameras)]
   return {name: np.stack([frame[name] for frame in frames]) for name in IMAGE_OUTPUTS}
 
@@ -133,11 +148,29 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: int = 24) -> P
   raise OSError(f"OpenCV can write neither mp4 nor avi video here ({path})")
 
 
+def depth_image(depth: np.ndarray, near: float | None = None, far: float | None = None
+                ) -> np.ndarray:
+  """A z-depth map [H, W] as a colour image [H, W, 3] in [0, 1] (turbo colour map over inverse
+  depth, so near structure and the distant background both stay visible).
+
+  Args:
+    near, far: depth range of the colour map; default the 1st and 99th percentiles of `depth`.
+  """
+  depth = np.maximum(np.asarray(depth, np.float32), 1e-6)
+  near = float(np.percentile(depth, 1)) if near is None else near
+  far = float(np.percentile(depth, 99)) if far is None else far
+  inverse = (1 / depth - 1 / max(far, near * (1 + 1e-6))) / max(1 / near - 1 / far, 1e-12)
+  levels = np.round(np.clip(1 - inverse, 0, 1) * 255).astype(np.uint8)
+  return cv2.applyColorMap(levels, cv2.COLORMAP_TURBO)[..., ::-1].astype(np.float32) / 255
+
+
 def write_renders(directory: str | os.PathLike, names, outputs: dict[str, np.ndarray]) -> None:
-  """Writes per view: <name>.png (colour), <name>.depth.exr (z-depth), <name>.accumulation.png."""
+  """Writes per view: <name>.png (colour), <name>.depth.exr (z-depth), <name>.depth.png (the
+  depth as a picture, `depth_image`), <name>.accumulation.png."""
   directory = Path(directory)
   for index, name in enumerate(names):
-    stem = Path(name).with_suffix("").as_posix().replace("/", "_")
+    stem = Path(name).with_suffix("").as_posix().replace("/", "_").lstrip("._")
     files.write_image(directory / f"{stem}.png", outputs["rgb"][index])
     files.write_exr(directory / f"{stem}.depth.exr", outputs["depth"][index])
+    files.write_image(directory / f"{stem}.depth.png", depth_image(outputs["depth"][index]))
     files.write_image(directory / f"{stem}.accumulation.png", outputs["accumulation"][index])

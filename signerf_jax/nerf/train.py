@@ -38,6 +38,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.nerf import checkpoint, losses
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import Capacity, SceneInfo, derive_capacity
+from signerf_jax.nerf.encoding import level_weights_at
 
 MODEL_FILE = "model.json"
 
@@ -49,9 +50,12 @@ class TrainConfig:
 
   Attributes:
     steps: training steps (the learning-rate schedule spans them).
-    max_seconds: stop earlier once this much wall-clock training time is spent (None = no limit).
+    max_seconds: wall-clock training time budget (None = no limit): training stops there, and
+      the learning-rate schedule spans it (`Trainer.progress`).
     learning_rate: peak Adam learning rate (after a linear warm-up).
-    final_learning_rate: learning rate at `steps` (exponential decay).
+    pose_learning_rate: peak learning rate of the pose corrections (`Capacity.pose_refinement`;
+      same schedule).
+    final_learning_rate: learning rate at the end of the schedule (exponential decay).
     warmup_steps: linear warm-up length.
     gradient_clip_norm: global-norm gradient clipping.
     adam_eps: Adam's epsilon (tiny, as instant-NGP: most table rows see tiny gradients).
@@ -68,6 +72,7 @@ class TrainConfig:
   steps: int = 5000
   max_seconds: float | None = None
   learning_rate: float = 1e-2
+  pose_learning_rate: float = 6e-4
   final_learning_rate: float = 1e-3
   warmup_steps: int = 50
   gradient_clip_norm: float = 1.0
@@ -99,11 +104,13 @@ class TrainingData:
     images: [N, H, W, 3] float32.
     cameras: N cameras.
     pixel_weights: [N, H, W] float32 per-pixel loss weights (1 = normal, 0 = ignore).
+    alphas: None or [N, H, W] float32 opacity of RGBA images (`Dataset.alphas`).
   """
 
   images: jax.Array
   cameras: camera.Cameras
   pixel_weights: jax.Array
+  alphas: jax.Array | None = None
 
   @classmethod
   def from_dataset(cls, dataset: Dataset, pixel_weights=None) -> "TrainingData":
@@ -116,22 +123,46 @@ class TrainingData:
         raise InputError(f"pixel weights have shape {pixel_weights.shape}, the images "
                          f"{weights.shape}", dataset.root or None, "pixel_weights")
       weights = weights * pixel_weights
-    return cls(jnp.asarray(dataset.images, jnp.float32), jax.tree.map(jnp.asarray,
-                                                                      dataset.cameras),
-               jnp.asarray(weights))
+    alphas = None if dataset.alphas is None else jnp.asarray(dataset.alphas, jnp.float32)
+    return cls(jnp.asarray(dataset.images, jnp.float32),
+               jax.tree.map(jnp.asarray, dataset.cameras), jnp.asarray(weights), alphas)
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
-  decay_steps = max(config.steps - config.warmup_steps, 1)
-  schedule = optax.join_schedules([
-      optax.linear_schedule(config.learning_rate * 0.01, config.learning_rate,
-                            max(config.warmup_steps, 1)),
-      optax.exponential_decay(config.learning_rate, decay_steps,
-                              config.final_learning_rate / config.learning_rate,
-                              end_value=config.final_learning_rate),
-  ], [max(config.warmup_steps, 1)])
+  """Gradient clipping and Adam's scaling; the step applies `learning_rate` itself, because the
+  schedule follows training progress, which a time budget measures in seconds, not steps."""
   return optax.chain(optax.clip_by_global_norm(config.gradient_clip_norm),
-                     optax.adam(schedule, b1=0.9, b2=0.99, eps=config.adam_eps))
+                     optax.scale_by_adam(b1=0.9, b2=0.99, eps=config.adam_eps))
+
+
+def learning_rate(config: TrainConfig, step, progress):
+  """The learning rate at `step` and `progress` (traced scalars).
+
+  A linear warm-up from 1% over `warmup_steps`, times an exponential decay from
+  `learning_rate` to `final_learning_rate` as progress goes from 0 to 1.
+
+  Args:
+    step: int32 steps done.
+    progress: float32 in [0, 1], the larger of steps / config.steps and seconds trained /
+      config.max_seconds (`Trainer.progress`): with a time budget the schedule spans it.
+  """
+  warmup = jnp.clip((step + 1) / max(config.warmup_steps, 1), 0.01, 1.0)
+  ratio = config.final_learning_rate / config.learning_rate
+  return config.learning_rate * warmup * ratio**jnp.clip(progress, 0.0, 1.0)
+
+
+def apply_gradients(config: TrainConfig, state: TrainState, gradients, progress
+                    ) -> tuple[dict[str, Any], optax.OptState]:
+  """The parameters after one optimiser step on `gradients`, and the new optimiser state."""
+  params = state.variables["params"]
+  updates, optimizer_state = make_optimizer(config).update(gradients, state.optimizer_state,
+                                                           params)
+  rate = learning_rate(config, state.step, progress)
+  rates = {name: rate * (config.pose_learning_rate / config.learning_rate
+                         if name == nerf_model.POSE_ADJUSTMENTS else 1.0) for name in params}
+  params = {name: jax.tree.map(lambda param, update: param - rates[name] * update,
+                               params[name], updates[name]) for name in params}
+  return {**state.variables, "params": params}, optimizer_state
 
 
 def init_state(model: nerf_model.NerfModel, config: TrainConfig, init_variables=None
@@ -158,28 +189,45 @@ def init_state(model: nerf_model.NerfModel, config: TrainConfig, init_variables=
 
 
 def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainState,
-               data: TrainingData, mesh: Mesh | None = None
+               data: TrainingData, progress, mesh: Mesh | None = None
                ) -> tuple[TrainState, dict[str, jax.Array]]:
   """One optimisation step (pure; `make_train_step` jits it with the state donated).
 
   With a `mesh`, the rays are split over its devices (the batch must divide evenly).
+  `progress` (float32 scalar in [0, 1]) places the step in the schedule (`learning_rate`).
 
   Returns:
     the new state and scalar statistics: loss, psnr (of the batch), complete_fraction (rays
-    that fit the sample budget), samples (network evaluations).
+    that fit the sample budget), samples (network evaluations), learning_rate.
   """
-  ray_key, render_key = jax.random.split(jax.random.fold_in(state.key, state.step))
+  ray_key, render_key, background_key = jax.random.split(
+      jax.random.fold_in(state.key, state.step), 3)
   rays, (index, row, column) = camera.random_rays(ray_key, data.cameras,
                                                   model.capacity.rays_per_batch)
   target = data.images[index, row, column]
   pixel_weight = data.pixel_weights[index, row, column]
+  background = None
+  if data.alphas is not None and model.background is not None:
+    # instant-NGP's random backgrounds: where the photo is transparent the target takes a new
+    # colour each step, so empty space must stay empty. With the constant background alone,
+    # density of that colour in front of it would fit the photos equally well (floaters that
+    # hide the object in other views: the sparse-view failure).
+    background = jax.random.uniform(background_key, target.shape)
+    transparency = (1.0 - data.alphas[index, row, column])[:, None]
+    target = target + transparency * (background - model.background)
   if mesh is not None:
-    rays, target, pixel_weight = jax.lax.with_sharding_constraint(
-        (rays, target, pixel_weight), parallel.batch_sharded(mesh))
+    rays, target, pixel_weight, background = jax.lax.with_sharding_constraint(
+        (rays, target, pixel_weight, background), parallel.batch_sharded(mesh))
+  if model.capacity.coarse_to_fine > 0:
+    state = state.replace(variables={**state.variables, "level_weights": level_weights_at(
+        model.capacity.num_levels, progress, model.capacity.coarse_to_fine)})
 
   def loss_fn(params):
-    outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, rays,
-                                          render_key, training=True)
+    refined = rays
+    if model.capacity.pose_refinement:
+      refined = camera.refine_rays(rays, params[nerf_model.POSE_ADJUSTMENTS])
+    outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, refined,
+                                          render_key, training=True, background=background)
     ray_weights = pixel_weight * outputs["ray_complete"]
     mse = losses.weighted_mse(outputs["rgb"], target, ray_weights)
     loss = mse + config.distortion_loss_weight * losses.distortion_loss(
@@ -192,10 +240,8 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     return loss, statistics
 
   gradients, statistics = jax.grad(loss_fn, has_aux=True)(state.variables["params"])
-  updates, optimizer_state = make_optimizer(config).update(gradients, state.optimizer_state,
-                                                           state.variables["params"])
-  variables = {**state.variables, "params": optax.apply_updates(state.variables["params"],
-                                                                updates)}
+  variables, optimizer_state = apply_gradients(config, state, gradients, progress)
+  statistics["learning_rate"] = learning_rate(config, state.step, progress)
   statistics["psnr"] = -10.0 * jnp.log10(jnp.maximum(statistics.pop("mse"), 1e-10))
   return TrainState(state.step + 1, variables, optimizer_state, state.key), statistics
 
@@ -221,7 +267,8 @@ def _jitted_steps(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh):
   State and data are replicated over the mesh, in and out.
   """
   replicated = parallel.replicated(mesh)
-  step_fn = jax.jit(lambda state, data: train_step(model, config, state, data, mesh),
+  step_fn = jax.jit(lambda state, data, progress: train_step(model, config, state, data,
+                                                            progress, mesh),
                     donate_argnums=0, in_shardings=replicated, out_shardings=replicated)
   occupancy_fn = jax.jit(lambda state: occupancy_step(model, config, state), donate_argnums=0,
                          in_shardings=replicated, out_shardings=replicated)
@@ -229,7 +276,8 @@ def _jitted_steps(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh):
 
 
 def make_train_step(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh
-                    ) -> Callable[[TrainState, TrainingData], tuple[TrainState, dict]]:
+                    ) -> Callable[[TrainState, TrainingData, jax.Array],
+                                  tuple[TrainState, dict]]:
   """One training step for this model and config, data-parallel over `mesh`: the occupancy
   refresh when it is due, then `train_step`; both jitted with the state donated."""
   parallel.check_divisible(model.capacity.rays_per_batch, mesh, "Capacity.rays_per_batch")
@@ -237,11 +285,11 @@ def make_train_step(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh
   if model.capacity.sampler != "occupancy":
     return step_fn
 
-  def step_with_occupancy(state: TrainState, data: TrainingData):
+  def step_with_occupancy(state: TrainState, data: TrainingData, progress):
     step = int(state.step)
     if step >= config.occupancy_warmup_steps and step % config.occupancy_update_every == 0:
       state = occupancy_fn(state)
-    return step_fn(state, data)
+    return step_fn(state, data, progress)
 
   return step_with_occupancy
 
@@ -273,6 +321,15 @@ class Trainer:
   def step(self) -> int:
     return int(self.state.step)
 
+  @property
+  def progress(self) -> float:
+    """How far through its schedule the run is, in [0, 1]: the larger of the steps done over
+    `config.steps` and the seconds trained over `config.max_seconds` (when set)."""
+    fractions = [self.step / max(self.config.steps, 1)]
+    if self.config.max_seconds:
+      fractions.append(self.seconds_trained / self.config.max_seconds)
+    return min(1.0, max(fractions))
+
   def run(self, *, until_step: int | None = None, until_seconds: float | None = None,
           run_dir: str | os.PathLike | None = None, progress: bool = True) -> dict[str, float]:
     """Trains until `until_step` (default: config.steps) or `until_seconds` of total training
@@ -290,7 +347,8 @@ class Trainer:
     smoothed_loss = None
     while self.step < until_step and (limit is None or self.seconds_trained < limit):
       started = time.perf_counter()
-      self.state, step_statistics = self._step_fn(self.state, self.data)
+      self.state, step_statistics = self._step_fn(self.state, self.data,
+                                                  jnp.float32(self.progress))
       loss = float(step_statistics["loss"])  # Blocks, so the time below is the step's.
       self.seconds_trained += time.perf_counter() - started
       smoothed_loss = loss if smoothed_loss is None else 0.9 * smoothed_loss + 0.1 * loss

@@ -74,6 +74,7 @@ def volume_render(densities, rgbs, edges, cos_to_optical_axis, background=None):
         accumulation; the far edge for empty rays (no gradient).
       depth, median_depth: [...] the same as z-depth (distance * cos_to_optical_axis).
       weights: [..., N].
+      edges: [..., N + 1] the intervals the weights belong to (infinite edges clamped).
   """
   weights, _ = compute_weights(densities, edges)
   finite_edges = jnp.minimum(edges, MAX_DISTANCE)
@@ -97,6 +98,7 @@ def volume_render(densities, rgbs, edges, cos_to_optical_axis, background=None):
       "depth": distance * cos_to_optical_axis,
       "median_depth": median_distance * cos_to_optical_axis,
       "weights": weights,
+      "edges": finite_edges,
   }
 
 

@@ -10,8 +10,8 @@ from signerf_jax.data import Dataset
 
 
 def make_dataset(count: int = 5, width: int = 12, height: int = 9, *, distortion=None,
-                 per_frame_intrinsics: bool = False, with_extras: bool = True,
-                 world_from_source=None, seed: int = 0) -> Dataset:
+                 fisheye: bool = False, per_frame_intrinsics: bool = False,
+                 with_extras: bool = True, world_from_source=None, seed: int = 0) -> Dataset:
   """Cameras on a ring looking at the origin, random images; optional masks/depths/object ids."""
   rng = np.random.default_rng(seed)
   angles = np.linspace(0, 2 * np.pi, count, endpoint=False)
@@ -20,7 +20,7 @@ def make_dataset(count: int = 5, width: int = 12, height: int = 9, *, distortion
   focal = 10.0 + (rng.uniform(0, 2, count) if per_frame_intrinsics else 0.0)
   cameras = camera.Cameras.create(camera_to_world, fx=focal, fy=focal * 1.05,
                                   cx=width / 2 + 0.25, cy=height / 2 - 0.5, width=width,
-                                  height=height, distortion=distortion)
+                                  height=height, distortion=distortion, fisheye=fisheye)
   shape = (count, height, width)
   return Dataset(
       images=rng.uniform(0, 1, shape + (3,)).astype(np.float32),

@@ -51,6 +51,12 @@ def per_frame_width(meta):
   meta["frames"][2]["w"] = meta["w"] + 2
 
 
+def opencv_with_polynomial_k4(meta):
+  """nerfstudio's OPENCV k4 is an r^8 term (OpenCV's k4 divides): it cannot be represented."""
+  meta["camera_model"] = "OPENCV"
+  meta["frames"][1]["k4"] = 0.01
+
+
 TRANSFORMS_CASES = {
     "missing frames": (delete_key(["frames"]), "frames"),
     "empty frames": (set_key(["frames"], []), "frames"),
@@ -82,8 +88,8 @@ TRANSFORMS_CASES = {
     "non-finite principal point": (set_key(["cx"], float("nan")), "cx"),
     "mixed declared sizes": (per_frame_width, "frames[2].w"),
     "missing file_path": (delete_key(["frames", 1, "file_path"]), "frames[1].file_path"),
-    "unsupported camera model": (set_key(["camera_model"], "OPENCV_FISHEYE"), "camera_model"),
-    "unsupported k3": (set_key(["k3"], 0.1), "k3"),
+    "unsupported camera model": (set_key(["camera_model"], "EQUIRECTANGULAR"), "camera_model"),
+    "OPENCV with k4": (opencv_with_polynomial_k4, "frames[1].k4"),
     "bad applied_transform": (set_key(["applied_transform"], [[1, 0, 0]]), "applied_transform"),
     "bad scene_bounds": (set_key(["signerf", "scene_bounds"], [[1, 1, 1], [0, 0, 0]]),
                          "signerf.scene_bounds"),
@@ -109,6 +115,21 @@ def test_malformed_transforms_json_names_file_and_field(written, case):
   assert error.value.path == str(written)
   assert error.value.field == field
   assert str(written) in str(error.value) and field in str(error.value)
+
+
+def test_split_files_mixing_fisheye_and_perspective_lenses_name_the_camera_model(
+    tmp_path, dataset_factory):
+  written = write_nerfstudio(tmp_path, dataset_factory(count=4, with_extras=False))
+  meta = files.read_json(written)
+  written.unlink()
+  for split, frames, camera_model in (("train", meta["frames"][:3], "PINHOLE"),
+                                      ("test", meta["frames"][3:], "OPENCV_FISHEYE")):
+    files.write_json(tmp_path / f"transforms_{split}.json",
+                     {**meta, "camera_model": camera_model, "frames": frames})
+  with pytest.raises(InputError, match="mix fisheye and perspective") as error:
+    load_dataset(tmp_path, split="all")
+  assert error.value.path == str(tmp_path / "transforms_test.json")
+  assert error.value.field == "camera_model"
 
 
 def test_invalid_json_names_the_file(written):

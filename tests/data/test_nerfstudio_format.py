@@ -15,20 +15,35 @@ def assert_same_cameras(actual, expected):
     np.testing.assert_array_equal(getattr(actual, name), getattr(expected, name), err_msg=name)
 
 
-@pytest.mark.parametrize("distortion", [None, (-0.12, 0.03, 0.001, -0.002)])
+# (distortion, fisheye, the camera model the writer picks for it)
+LENSES = {
+    "pinhole": (None, False, "PINHOLE"),
+    "opencv": ((-0.12, 0.03, 0.001, -0.002), False, "OPENCV"),
+    "opencv with k3": ((-0.12, 0.03, 0.001, -0.002, 0.004), False, "OPENCV"),
+    "rational": ((-0.12, 0.03, 0.001, -0.002, 0.004, 0.2, -0.01, 0.003), False, "FULL_OPENCV"),
+    "fisheye": ((0.05, -0.01, 0.002, -0.0005), True, "OPENCV_FISHEYE"),
+    "equidistant fisheye": (None, True, "OPENCV_FISHEYE"),
+}
+
+
+@pytest.mark.parametrize("lens", LENSES)
 @pytest.mark.parametrize("per_frame_intrinsics", [False, True])
-def test_write_then_read_gives_identical_cameras_and_data(tmp_path, dataset_factory, distortion,
+def test_write_then_read_gives_identical_cameras_and_data(tmp_path, dataset_factory, lens,
                                                           per_frame_intrinsics):
+  distortion, fisheye, camera_model = LENSES[lens]
   similarity = poses.similarity(0.5, poses.rotation_between([0, 0, 1], [0, 1, 0]), [0.1, 0, 0])
-  dataset = dataset_factory(distortion=distortion, per_frame_intrinsics=per_frame_intrinsics,
+  dataset = dataset_factory(distortion=distortion, fisheye=fisheye,
+                            per_frame_intrinsics=per_frame_intrinsics,
                             world_from_source=similarity)
   path = write_nerfstudio(tmp_path, dataset, provenance={"made_by": "test"})
   meta = files.read_json(path)
   assert ("fl_x" in meta) != per_frame_intrinsics
-  assert meta["camera_model"] == ("PINHOLE" if distortion is None else "OPENCV")
+  assert meta["camera_model"] == camera_model
+  assert set(nerfstudio.DISTORTION_SLOTS[camera_model]) <= set(meta)
   assert meta["signerf"]["provenance"] == {"made_by": "test"}
 
   restored = load_dataset(tmp_path, split="all")
+  assert restored.cameras.fisheye == fisheye
   assert_same_cameras(restored.cameras, dataset.cameras)
   np.testing.assert_allclose(restored.images, dataset.images, atol=0.5 / 255 + 1e-6)
   np.testing.assert_allclose(restored.masks, dataset.masks, atol=0.5 / 255)

@@ -97,7 +97,8 @@ def test_the_update_changes_only_masked_pixels_and_only_the_slot(generator):
                                  update.SlotViews(*(array[1:2] for array in (
                                      views.images, views.masks, views.controls, views.boxes))),
                                  keys[1:2])
-  np.testing.assert_allclose(alone[0], edited[1], atol=1e-6)
+  # Batches of different sizes reduce in a different float32 order: ~2e-6 apart.
+  np.testing.assert_allclose(alone[0], edited[1], atol=1e-5)
 
 
 def test_crops_cut_tiles_around_the_selection_and_paste_back_through_the_mask(generator):

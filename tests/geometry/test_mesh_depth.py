@@ -12,13 +12,15 @@ SHARED_MESHES = ["spot/spot_triangulated.obj", "spot/spot_control_mesh.obj", "bu
                  "teddy.obj", "teapot.obj"]
 
 
-def orbit_cameras(target, distance, size=48, distortion=None, count=3, up=(0.0, 0.0, 1.0)):
+def orbit_cameras(target, distance, size=48, distortion=None, count=3, up=(0.0, 0.0, 1.0),
+                  fisheye=False):
   angles = np.linspace(0.3, 2 * np.pi + 0.3, count, endpoint=False)
   eyes = np.stack([np.cos(angles), np.sin(angles), 0.5 + 0.3 * np.cos(3 * angles)], -1)
   eyes = np.asarray(target) + distance * eyes / np.linalg.norm(eyes, axis=-1, keepdims=True)
   camera_to_world = camera.look_at(eyes.astype(np.float32), np.asarray(target, np.float32), up)
   return camera.Cameras.create(camera_to_world, fx=size * 1.1, fy=size * 1.05, cx=size / 2 + 0.7,
-                               cy=size / 2 - 0.4, width=size, height=size, distortion=distortion)
+                               cy=size / 2 - 0.4, width=size, height=size, distortion=distortion,
+                               fisheye=fisheye)
 
 
 def trimesh_distance(mesh: mesh_lib.Mesh, cameras: camera.Cameras) -> np.ndarray:
@@ -72,11 +74,32 @@ def assert_matches_trimesh(mesh, cameras, **render_options):
     primitives.capsule(0.25, 1.0, count=(8, 8)),
     primitives.primitive_cow(),
 ], ids=lambda proxy: proxy.source)
-@pytest.mark.parametrize("distortion", [None, (-0.2, 0.05, 0.002, -0.001)],
-                         ids=["pinhole", "distorted"])
-def test_primitives_match_trimesh_ray_casting(proxy, distortion):
-  cameras = orbit_cameras(np.zeros(3), 2.5, distortion=distortion)
+@pytest.mark.parametrize("distortion, fisheye", [
+    (None, False), ((-0.2, 0.05, 0.002, -0.001), False),
+    ((0.3, -0.1, 0.002, -0.001, 0.01, 0.5, -0.02, 0.004), False),
+    ((0.05, -0.01, 0.002, -0.0005), True)], ids=["pinhole", "distorted", "rational", "fisheye"])
+def test_primitives_match_trimesh_ray_casting(proxy, distortion, fisheye):
+  cameras = orbit_cameras(np.zeros(3), 2.5, distortion=distortion, fisheye=fisheye)
   assert_matches_trimesh(proxy, cameras)
+
+
+def test_fisheye_rays_past_90_degrees_hit_nothing_and_the_others_match_trimesh():
+  """A 250-degree fisheye inside a box: the walls in front are exact, the rays behind the
+  camera plane (no positive z-depth) are misses."""
+  proxy = primitives.box((2.0, 3.0, 2.5))
+  eye = np.array([[0.2, -0.3, 0.1]], np.float32)
+  camera_to_world = camera.look_at(eye, np.array([1.0, 0.5, 0.3], np.float32))
+  cameras = camera.Cameras.create(camera_to_world, fx=np.hypot(24, 24) / np.deg2rad(125.0),
+                                  width=48, height=48, fisheye=True)
+  result = render(proxy, cameras)
+  cosine = np.asarray(camera.image_rays(cameras, 0).cos_to_optical_axis)
+  assert np.any(cosine < -0.5)
+  assert not np.asarray(result.hit)[0][cosine <= 0].any()
+  in_front = cosine > 1e-3  # well clear of the clamp at camera.MAX_PLANE_ANGLE
+  expected = trimesh_distance(proxy, cameras)[0]
+  np.testing.assert_array_equal(np.asarray(result.hit)[0][in_front], True)
+  np.testing.assert_allclose(np.asarray(result.distance)[0][in_front], expected[in_front],
+                             rtol=1e-4)
 
 
 @pytest.mark.parametrize("tile_size", [3, 8])

@@ -108,13 +108,16 @@ def test_without_cameras_pairs_by_index_and_skips_epipolar(image_sets):
     consistency.image_set_consistency(image_sets["original"][:3])
 
 
-@pytest.mark.parametrize("distortion", [None, (-0.1, 0.02, 0.003, -0.002)])
-def test_fundamental_from_cameras_satisfies_the_epipolar_constraint(distortion):
+@pytest.mark.parametrize("distortion, fisheye", [
+    (None, False), ((-0.1, 0.02, 0.003, -0.002), False),
+    ((0.1, -0.02, 0.003, -0.002, 0.01, 0.2, -0.01, 0.002), False),
+    ((0.05, -0.01, 0.002, -0.0005), True)], ids=["pinhole", "opencv", "rational", "fisheye"])
+def test_fundamental_from_cameras_satisfies_the_epipolar_constraint(distortion, fisheye):
   """Projections of random points lie on each other's epipolar lines (after undistortion)."""
   eyes = np.array([[2.0, 0.3, 0.8], [1.6, -1.2, 1.1]])
   cameras = camera.Cameras.create(np.asarray(camera.look_at(eyes, np.zeros(3))), fx=90.0,
                                   fy=95.0, cx=[40.0, 41.5], cy=[30.0, 28.0], width=80,
-                                  height=60, distortion=distortion)
+                                  height=60, distortion=distortion, fisheye=fisheye)
   points = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 3))
   pixels, _ = camera.project(cameras, points)
   opencv_keypoints = [np.asarray(pixels[view], np.float64) - 0.5 for view in range(2)]

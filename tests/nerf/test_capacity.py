@@ -8,7 +8,7 @@ from signerf_jax.nerf.encoding import grid_layout
 
 LEGO_100 = capacity.SceneInfo(bounds=((-1, -1, -1), (1, 1, 1)), kind="bounded", near=1.0,
                               far=4.4, background_color=(1, 1, 1), num_images=100, width=100,
-                              height=100, pixel_footprint=2.7 / 138.9)
+                              height=100, pixel_footprint=2.7 / 138.9, camera_distance=2.7)
 
 
 def test_bounded_scene_gets_an_occupancy_grid_no_contraction_and_its_background():
@@ -72,3 +72,14 @@ def test_capacity_of_the_benchmark_scenes(shared_data):
   derived = capacity.derive_capacity(fern)
   assert fern.kind == "forward_facing" and derived.sampler == "proposal"
   assert not derived.contract and derived.appearance_embedding
+
+
+def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
+  real = capacity.derive_capacity(dataclasses.replace(LEGO_100, kind="unbounded",
+                                                      background_color=None))
+  synthetic = capacity.derive_capacity(LEGO_100)
+  assert real.near_gradient_scaling and not synthetic.near_gradient_scaling
+  line = capacity.describe(real)
+  assert "near-camera gradient scaling" in line and "contracted unbounded space" in line
+  assert "proposal sampling" in line and "appearance codes" in line
+  assert "occupancy-grid sampling" in capacity.describe(synthetic)

@@ -82,3 +82,27 @@ def test_spherical_harmonics_are_orthonormal():
   assert basis.shape == (200000, 16)
   gram = 4 * np.pi * np.asarray(basis.T @ basis) / basis.shape[0]
   np.testing.assert_allclose(gram, np.eye(16), atol=0.03)
+
+
+def test_coarse_to_fine_weights_unlock_levels_in_order():
+  weights = lambda progress: np.asarray(encoding.level_weights_at(5, progress, 0.5))
+  np.testing.assert_array_equal(weights(0.0), [1, 0, 0, 0, 0])
+  np.testing.assert_allclose(weights(0.25), [1, 1, 1, 0, 0], atol=1e-6)  # halfway: 2 of 4 more
+  np.testing.assert_allclose(weights(0.3125), [1, 1, 1, 0.5, 0], atol=1e-6)
+  np.testing.assert_array_equal(weights(0.5), np.ones(5))
+  np.testing.assert_array_equal(weights(1.0), np.ones(5))
+  np.testing.assert_array_equal(encoding.level_weights_at(5, 0.0, 0.0), np.ones(5))
+
+
+def test_a_switched_off_level_has_no_features_and_no_gradient():
+  layout = encoding.grid_layout(3, 4, 16, 10, 2)
+  table = jax.random.normal(jax.random.PRNGKey(0), (layout.num_rows, 2))
+  points = jax.random.uniform(jax.random.PRNGKey(1), (20, 3))
+  level_weights = jnp.array([1.0, 0.5, 0.0])
+  features = encoding.hash_grid_encode(table, layout, points, level_weights).reshape(20, 3, 2)
+  full = encoding.hash_grid_encode(table, layout, points).reshape(20, 3, 2)
+  np.testing.assert_allclose(features, full * level_weights[:, None], rtol=1e-6)
+  gradient = jax.grad(lambda t: jnp.sum(encoding.hash_grid_encode(t, layout, points,
+                                                                  level_weights)))(table)
+  finest = slice(layout.offsets[2], layout.offsets[2] + layout.table_sizes[2])
+  assert np.all(gradient[finest] == 0) and np.any(gradient[:layout.table_sizes[0]] != 0)

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from signerf_jax.nerf import losses
+from signerf_jax.nerf import losses, sampling
 
 
 def brute_force_outer(edges, proposal_edges, proposal_weights):
@@ -68,3 +68,20 @@ def test_distortion_loss_matches_pairwise_sum_and_prefers_concentrated_weights()
   spread = losses.distortion_loss(uniform_edges, jnp.full((1, 8), 1 / 8), 1.0, jnp.ones(1))
   peaked = losses.distortion_loss(uniform_edges, jnp.eye(8)[3:4], 1.0, jnp.ones(1))
   assert float(peaked) < float(spread)
+
+
+def test_gradient_scaling_keeps_values_and_scales_gradients_by_squared_distance():
+  densities = jnp.array([[1.0, 1e10, 0.0, 5.0]])
+  rgbs = jnp.full((1, 4, 3), 0.5)
+  edges = jnp.array([[0.0, 0.2, 0.6, 2.0, sampling.MAX_DISTANCE]])
+  scaled_densities, scaled_rgbs = losses.near_camera_gradient_scaling(densities, rgbs, edges, 1.0)
+  np.testing.assert_array_equal(scaled_densities, densities)
+  np.testing.assert_array_equal(scaled_rgbs, rgbs)
+  gradient = jax.grad(lambda d: jnp.sum(losses.near_camera_gradient_scaling(
+      d, rgbs, edges, 1.0)[0]))(densities)
+  # Midpoints 0.1, 0.4, 1.3, ~5e9: (t / 1)^2 up to 1.
+  np.testing.assert_allclose(gradient, [[0.01, 0.16, 1.0, 1.0]], rtol=1e-6)
+  colour_gradient = jax.grad(lambda c: jnp.sum(losses.near_camera_gradient_scaling(
+      densities, c, edges, 2.0)[1]))(rgbs)
+  np.testing.assert_allclose(colour_gradient[0, :, 0], [0.0025, 0.04, 0.4225, 1.0], rtol=1e-5)
+  assert np.all(np.isfinite(colour_gradient))

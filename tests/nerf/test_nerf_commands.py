@@ -33,16 +33,21 @@ def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
   assert cli.main(["eval", "--run", str(run)]) == 0
   lines = capsys.readouterr().out.strip().splitlines()
   result = json.loads(lines[-1])
-  assert {"psnr", "ssim", "depth_mae", "seconds_trained"} <= set(result)
-  assert result["depth_mae"] is not None and result["seconds_trained"] > 0
+  held_out = result["held_out"]
+  assert {"psnr", "ssim", "depth_mae", "near_camera_weight"} <= set(held_out)
+  assert held_out["depth_mae"] is not None and result["seconds_trained"] > 0
+  assert result["generalisation_gap_db"] == pytest.approx(
+      result["train"]["psnr"] - held_out["psnr"])
   assert files.read_json(run / "eval.json") == result
+  # Every held-out view's render and depth map, as pictures.
+  assert len(list((run / "eval").glob("*.depth.png"))) == held_out["num_views"]
 
   out = tmp_path / "renders"
   assert cli.main(["render", "--run", str(run), "--out", str(out), "--video",
                    "--frames", "3"]) == 0
   pngs = sorted((out / "eval").glob("*.png"))
   exrs = sorted((out / "eval").glob("*.depth.exr"))
-  assert len(exrs) == result["num_views"] and len(pngs) == 2 * len(exrs)
+  assert len(exrs) == held_out["num_views"] and len(pngs) == 3 * len(exrs)
   depth = files.read_exr(exrs[0])
   assert depth.shape == (24, 24) and np.all(np.isfinite(depth))
   video = [path for path in out.iterdir() if path.stem == "video"]

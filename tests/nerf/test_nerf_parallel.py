@@ -28,6 +28,7 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
     import dataclasses
     import sys
     import jax
+    import jax.numpy as jnp
     import numpy as np
     tests, output = sys.argv[1:]
     sys.path.insert(0, tests)
@@ -55,7 +56,7 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
         trainer.run(until_step=STEPS + 2, progress=False)
       results[f"compilations_{count}"] = len(compiled)
     step_fn, _ = train._jitted_steps(model, CONFIG, mesh)
-    program = step_fn.lower(trainer.state, trainer.data).compile().as_text()
+    program = step_fn.lower(trainer.state, trainer.data, jnp.float32(0)).compile().as_text()
     results.update(all_reduces=program.count("all-reduce("),
                    all_gathers=program.count("all-gather("))
     odd = dataclasses.replace(model.capacity, rays_per_batch=1001)

@@ -36,7 +36,7 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
     assert any(moved), name
 
 
-def test_appearance_embedding_is_per_image_and_off_for_novel_views(sphere):
+def test_appearance_embedding_is_per_image_and_the_mean_for_novel_views(sphere):
   dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
   scene = capacity.SceneInfo.from_dataset(dataset)
   model = nerf_model.NerfModel(scene, capacity.derive_capacity(scene))
@@ -50,7 +50,10 @@ def test_appearance_embedding_is_per_image_and_off_for_novel_views(sphere):
   _, rgb = model.field.apply({"params": variables["params"]["field"]}, points, directions,
                              jnp.array([0, 1, -1]))
   assert not np.allclose(rgb[0], rgb[1])
-  zero_table = {**variables["params"]["field"],
-                "appearance": {"embedding": jnp.zeros_like(table)}}
-  _, rgb_without = model.field.apply({"params": zero_table}, points, directions)
-  np.testing.assert_allclose(rgb[2], rgb_without[2], atol=1e-6)
+  # A novel view (-1) uses the mean of the training views' codes.
+  codes = variables["params"]["field"]["appearance"]["embedding"]
+  mean_table = {**variables["params"]["field"],
+                "appearance": {"embedding": jnp.broadcast_to(codes.mean(0), codes.shape)}}
+  _, rgb_mean = model.field.apply({"params": mean_table}, points, directions,
+                                  jnp.array([0, 1, 2]))
+  np.testing.assert_allclose(rgb[2], rgb_mean[2], atol=1e-6)

@@ -69,10 +69,10 @@ def test_interrupted_run_keeps_its_last_checkpoint(sphere, tmp_path):
   trainer = train.make_trainer(sphere, model=model, config=config)
   step_fn = trainer._step_fn
 
-  def failing_step(state, data):
+  def failing_step(state, data, progress):
     if int(state.step) == 7:
       raise KeyboardInterrupt
-    return step_fn(state, data)
+    return step_fn(state, data, progress)
 
   trainer._step_fn = failing_step
   train.write_model_file(tmp_path, model, sphere)
@@ -103,3 +103,31 @@ def test_fine_tuning_starts_from_given_variables_and_honours_pixel_weights(spher
   assert all(changed)
   loaded = evaluate.load_run(tmp_path / "weighted")
   assert loaded.model == trainer.model and loaded.step == 3
+
+
+def test_learning_rate_warms_up_then_decays_with_progress():
+  config = dataclasses.replace(SMALL_CONFIG, learning_rate=1e-2, final_learning_rate=1e-4,
+                               warmup_steps=10)
+  rate = lambda step, progress: float(train.learning_rate(config, step, progress))
+  assert rate(0, 0.0) == pytest.approx(1e-3)  # 1/10 of the way through the warm-up
+  assert rate(9, 0.0) == pytest.approx(1e-2)
+  assert rate(500, 0.5) == pytest.approx(1e-3, rel=1e-5)  # halfway: the geometric mean
+  assert rate(500, 1.0) == pytest.approx(1e-4, rel=1e-5)
+  assert rate(500, 7.0) == pytest.approx(1e-4, rel=1e-5)  # clamped past the end
+
+
+def test_a_time_budget_is_what_the_schedule_spans(sphere):
+  """With max_seconds, progress is the larger of the steps and the seconds fractions, so a run
+  stopped by its time budget ends annealed although it did few of its steps."""
+  config = dataclasses.replace(SMALL_CONFIG, steps=1_000_000, max_seconds=3.0)
+  trainer = train.make_trainer(sphere, model=small_model(sphere), config=config)
+  trainer.seconds_trained = 1.5
+  assert trainer.progress == pytest.approx(0.5)
+  trainer.seconds_trained = 0.0
+  statistics = trainer.run(progress=False)
+  assert trainer.seconds_trained >= 3.0 and trainer.step < 1000
+  assert trainer.progress == 1.0
+  # The last step ran at the end of the schedule (within one step's share of the time).
+  final = config.final_learning_rate
+  assert final <= statistics["learning_rate"] <= final * (config.learning_rate / final)**(
+      2 * (trainer.seconds_trained / trainer.step) / 3.0)

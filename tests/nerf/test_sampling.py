@@ -78,3 +78,18 @@ def test_contraction_keeps_the_inner_box_and_bounds_everything():
   assert np.all(np.abs(contracted) <= 2.0) and np.all(np.isfinite(contracted))
   gradient = jax.grad(lambda p: jnp.sum(sampling.contract(p)))(points)
   assert np.all(np.isfinite(gradient))
+
+
+@pytest.mark.parametrize("direction", [[1.0, 0.3, -0.2], [0.2, -1.0, 0.9], [1.0, 1.0, 1.0]])
+def test_contraction_is_continuous_with_a_finite_jacobian_and_identity_inside(direction):
+  direction = np.asarray(direction) / np.max(np.abs(direction))  # L-inf norm 1: the border
+  jacobian = jax.jacfwd(sampling.contract)
+  for scale in (0.3, 0.999):
+    np.testing.assert_allclose(jacobian(jnp.asarray(scale * direction, jnp.float32)), np.eye(3),
+                               atol=1e-6)
+  inside, outside = (jnp.asarray(scale * direction, jnp.float32) for scale in (1 - 1e-4, 1 + 1e-4))
+  np.testing.assert_allclose(sampling.contract(inside), sampling.contract(outside), atol=1e-3)
+  # The Jacobian does not jump across the border (within the step's own change).
+  np.testing.assert_allclose(jacobian(inside), jacobian(outside), atol=2e-3)
+  for scale in (2.0, 1e3, 1e9):
+    assert np.all(np.isfinite(jacobian(jnp.asarray(scale * direction, jnp.float32))))

@@ -54,7 +54,8 @@ def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
                     "replacing the pipeline's")
   data.add_argument("--scheduler", choices=("ddim", "dpm_solver_multistep", "euler_ancestral"),
                     help="override the checkpoint's scheduler")
-  where = parser.add_argument_group("selection (scene frame unless SelectionConfig.frame)")
+  where = parser.add_argument_group(
+      "selection (the dataset's own world units unless SelectionConfig.frame)")
   where.add_argument("--box", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                      help="shape selection: axis-aligned box min and max corners")
   where.add_argument("--proxy", help="proxy selection: a mesh file or primitive:<box, sphere, "
@@ -69,7 +70,7 @@ def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
   where.add_argument("--size", type=float, help="with --on_ground: the proxy's largest side")
   where.add_argument("--heading", type=float, help="with --on_ground: turn about up (degrees)")
   where.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                     help="the scene's up direction (default: the cameras' mean up)")
+                     help="the up direction (default: the cameras' mean up)")
   how = parser.add_argument_group("how")
   how.add_argument("--sheet", help="the sheet recipe to propagate: SEED or SEED/TILE,TILE@SEED")
   how.add_argument("--nerf_update", choices=("auto", "finetune", "retrain"),

@@ -3,10 +3,38 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from pathlib import Path
 from typing import Any
+
+import gin
 
 from signerf_jax.data import Dataset, load_dataset
 from signerf_jax.errors import InputError
+
+
+@gin.configurable
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+  """How a dataset is read: the options of `data.load_dataset` besides the split (each has a
+  command-line flag of the same name, which wins over gin). A run records them in model.json,
+  so its held-out split loads in the same frame.
+
+  Attributes:
+    downscale: integer image downscale.
+    eval_every: hold out every N-th view instead of the dataset's own split.
+    held_out: names of the views to hold out (wins over everything else).
+    scene_kind: "bounded", "forward_facing" or "unbounded" instead of what the data suggests.
+    scene_center: (x, y, z) centre of the region modelled in detail, in the dataset's units.
+    scene_radius: half-side of that region, in the dataset's units.
+  """
+
+  downscale: int = 1
+  eval_every: int | None = None
+  held_out: tuple[str, ...] = ()
+  scene_kind: str | None = None
+  scene_center: tuple[float, float, float] | None = None
+  scene_radius: float | None = None
 
 
 def add_gin_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,10 +44,55 @@ def add_gin_arguments(parser: argparse.ArgumentParser) -> None:
                       help="gin binding such as 'TrainConfig.steps = 2000'; repeatable")
 
 
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+  """Flags for every `DataConfig` field (default: the gin-configured value)."""
+  parser.add_argument("--downscale", type=int, default=None, help="integer image downscale")
+  parser.add_argument("--eval_every", type=int, default=None,
+                      help="hold out every N-th view (default: the dataset's own split, else 8)")
+  parser.add_argument("--held_out", default=None,
+                      help="views to hold out: comma-separated names, or @FILE with one per line")
+  parser.add_argument("--scene_kind", default=None,
+                      choices=("bounded", "forward_facing", "unbounded"),
+                      help="override the scene kind the data suggests")
+  parser.add_argument("--scene_center", type=float, nargs=3, default=None,
+                      metavar=("X", "Y", "Z"),
+                      help="centre of the region modelled in detail, in the dataset's units")
+  parser.add_argument("--scene_radius", type=float, default=None,
+                      help="half-side of that region, in the dataset's units")
+
+
+def _held_out_names(value: str) -> tuple[str, ...]:
+  if value.startswith("@"):
+    path = Path(value[1:])
+    if not path.is_file():
+      raise InputError("held-out list not found", path, "held_out")
+    lines = path.read_text(encoding="utf-8").splitlines()
+  else:
+    lines = value.split(",")
+  return tuple(line.strip() for line in lines if line.strip())
+
+
+def data_options(args: argparse.Namespace) -> dict[str, Any]:
+  """`load_dataset`'s options (JSON-friendly): the gin `DataConfig` with the given flags on top,
+  and the dataset's absolute root."""
+  config = DataConfig()
+  flags = {name: getattr(args, name) for name in ("downscale", "eval_every", "scene_kind",
+                                                  "scene_radius")
+           if getattr(args, name, None) is not None}
+  if getattr(args, "held_out", None) is not None:
+    flags["held_out"] = _held_out_names(args.held_out)
+  if getattr(args, "scene_center", None) is not None:
+    flags["scene_center"] = tuple(args.scene_center)
+  options = dataclasses.asdict(dataclasses.replace(config, **flags))
+  options["held_out"] = list(options["held_out"])
+  return {"root": str(Path(args.data).resolve()), **options}
+
+
 def load_recorded_dataset(description: dict[str, Any], split: str) -> Dataset:
   """The dataset a run was trained on (as model.json recorded it), in another split."""
   options = dict(description.get("data_options") or {})
   if "root" not in options:
     raise InputError("the run does not record where its data came from", None, "data_options")
   root = options.pop("root")
+  options["held_out"] = tuple(options.get("held_out") or ())
   return load_dataset(root, split=split, **options)

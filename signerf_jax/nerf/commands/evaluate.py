@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
+from typing import Any
 
 from signerf_jax import files
+from signerf_jax.errors import InputError
+from signerf_jax.metrics import lpips
 from signerf_jax.nerf import evaluate
 from signerf_jax.nerf.commands import load_recorded_dataset
 
 EVAL_FILE = "eval.json"
+RENDERS_FOLDER = "eval"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,19 +24,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   target.add_argument("--edit", help="edit directory written by `signerf edit`: evaluate the "
                       "edit instead (background preservation, consistency, CLIP)")
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
-                      help="which dataset views to evaluate on")
+                      help="views to evaluate; eval (the held-out views) also reports the "
+                      "training views' PSNR and the gap")
+  parser.add_argument("--lpips", default="", help="VGG-LPIPS weights (safetensors) for LPIPS")
   parser.add_argument("--chunk_size", type=int, default=4096, help="rays rendered at once")
+
+
+def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights: str = "",
+                 chunk_size: int = 4096) -> dict[str, Any]:
+  """Evaluates a run on `split`; writes RUN/eval.json and, for the held-out split, the renders
+  and depth maps to RUN/eval/. Returns what eval.json holds."""
+  run_dir = Path(run_dir)
+  trained = evaluate.load_run(run_dir)
+  lpips_params = None
+  if lpips_weights:
+    if not Path(lpips_weights).is_file():
+      raise InputError("LPIPS weights file not found", lpips_weights, "lpips")
+    lpips_params = lpips.load_lpips_params(lpips_weights)
+  dataset = load_recorded_dataset(trained.description, split)
+  if split == "eval":
+    result, _ = evaluate.generalisation_report(
+        trained.model, trained.variables, dataset, load_recorded_dataset(
+            trained.description, "train"), chunk_size, lpips_params, run_dir / RENDERS_FOLDER)
+  else:
+    result, _ = evaluate.evaluate(trained.model, trained.variables, dataset, chunk_size,
+                                  lpips_params)
+  result = {**result, "seconds_trained": trained.seconds_trained, "step": trained.step,
+            "split": split}
+  files.write_json(run_dir / EVAL_FILE, result)
+  return result
 
 
 def run(args: argparse.Namespace) -> int:
   if args.edit is not None:
     from signerf_jax.editing import commands  # pylint: disable=g-import-not-at-top
     return commands.run_evaluation(args.edit)
-  trained = evaluate.load_run(args.run)
-  dataset = load_recorded_dataset(trained.description, args.split)
-  metrics, _ = evaluate.evaluate(trained.model, trained.variables, dataset, args.chunk_size)
-  result = {**metrics, "seconds_trained": trained.seconds_trained, "step": trained.step,
-            "split": args.split}
-  files.write_json(Path(args.run) / EVAL_FILE, result)
-  print(json.dumps(result))
+  print(json.dumps(evaluate_run(args.run, args.split, args.lpips, args.chunk_size)))
   return 0

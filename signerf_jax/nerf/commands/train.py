@@ -1,23 +1,30 @@
-"""`signerf train`: train (or resume) a NeRF on a dataset directory."""
+"""`signerf train`: train (or resume) a NeRF on a dataset, then evaluate it on its held-out
+views."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from signerf_jax import configs
+from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import load_dataset
-from signerf_jax.nerf import checkpoint, train
-from signerf_jax.nerf.commands import add_gin_arguments
+from signerf_jax.nerf import capacity, checkpoint, train
+from signerf_jax.nerf.commands import add_data_arguments, add_gin_arguments, data_options
+from signerf_jax.nerf.commands import evaluate as evaluate_command
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--data", required=True, help="dataset directory (nerfstudio, Blender, LLFF)")
+  parser.add_argument("--data", required=True,
+                      help="dataset directory (nerfstudio, Blender, LLFF, COLMAP, NeuS/IDR)")
   parser.add_argument("--out", required=True, help="run directory (resumed if it has a checkpoint)")
-  parser.add_argument("--downscale", type=int, default=1, help="integer image downscale")
   parser.add_argument("--steps", type=int, default=None, help="overrides TrainConfig.steps")
   parser.add_argument("--max_seconds", type=float, default=None,
-                      help="stop after this much training time (resumable)")
+                      help="training time budget: the schedule spans it (resumable)")
+  parser.add_argument("--skip_eval", action="store_true",
+                      help="do not evaluate on the held-out views after training")
+  add_data_arguments(parser)
   add_gin_arguments(parser)
 
 
@@ -29,11 +36,26 @@ def run(args: argparse.Namespace) -> int:
   if not gin_files and checkpoint.has_checkpoint(run_dir) and saved_config.is_file():
     gin_files = [saved_config]
   configs.parse_gin(gin_files, args.gin_param)
-  data_options = {"root": str(Path(args.data).resolve()), "downscale": args.downscale}
-  dataset = load_dataset(args.data, split="train", downscale=args.downscale)
+  options = data_options(args)
+  loading = {name: value for name, value in options.items() if name != "root"}
+  loading["held_out"] = tuple(loading["held_out"])
+  dataset = load_dataset(options["root"], split="train", **loading)
+  model = (train.read_model_file(run_dir)[0] if checkpoint.has_checkpoint(run_dir)
+           else train.build_model(dataset))
+  print(f"signerf train: {dataset.num_images} training views of {dataset.width}x"
+        f"{dataset.height} px; {frame_lib.summary_line(dataset.frame)}\n"
+        f"signerf train: {capacity.describe(model.capacity)}", file=sys.stderr)
   trainer = train.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
-                        data_options=data_options)
+                        model=model, data_options=options)
   statistics = trainer.last_statistics
-  print(f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
-        f"last batch {statistics.get('psnr', float('nan')):.2f} dB; run in {run_dir}")
+  message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
+             f"last batch {statistics.get('psnr', float('nan')):.2f} dB")
+  if not args.skip_eval:
+    report = evaluate_command.evaluate_run(run_dir)
+    message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "
+                f"{report['held_out']['ssim']:.3f} on {report['held_out']['num_views']} views, "
+                f"gap to training views {report['generalisation_gap_db']:.2f} dB "
+                f"({run_dir / evaluate_command.EVAL_FILE}, renders in "
+                f"{run_dir / evaluate_command.RENDERS_FOLDER})")
+  print(f"{message}; run in {run_dir}")
   return 0
