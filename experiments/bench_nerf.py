@@ -47,7 +47,7 @@ class Scene:
 
   path: Path
   downscale: int
-  training_views: slice = slice(None)
+  training_views: tuple[int, ...] | None = None  # None: all of the train split.
 
 
 SCENES = {
@@ -55,7 +55,7 @@ SCENES = {
     "stitch_400": Scene(SHARED_DATA / "stitch", 2),
     "fern": Scene(SHARED_DATA / "llff" / "fern", 8),
     "lego": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8),
-    "lego_12": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8, slice(0, 96, 8)),
+    "lego_12": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8, tuple(range(0, 96, 8))),
 }
 FIGURE_VIEWS = 3
 
@@ -66,7 +66,8 @@ def load_scene(name: str):
   if not scene.path.is_dir():
     raise FileNotFoundError(f"benchmark scene {name} needs {scene.path}")
   training = load_dataset(scene.path, split="train", downscale=scene.downscale)
-  training = training.subset(np.arange(training.num_images)[scene.training_views])
+  if scene.training_views is not None:
+    training = training.subset(list(scene.training_views))
   return training, load_dataset(scene.path, split="eval", downscale=scene.downscale)
 
 
