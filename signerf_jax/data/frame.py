@@ -222,16 +222,16 @@ def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None,
       method.append("SfM points")
   positions = np.asarray(cameras.positions, np.float64)
   distances = np.linalg.norm(positions - centre, axis=-1)
+  rotation = _up_rotation(cameras)
   if scene_radius is not None:
     half_side = float(scene_radius)
     method.append("radius given")
   else:
     # Cameras inside the L-inf cube: their largest offset along any axis after rotation.
-    half_side = float(np.max(np.abs((positions - centre) @ _up_rotation(cameras).T)))
+    half_side = float(np.max(np.abs((positions - centre) @ rotation.T)))
   if not half_side > 0:
     raise InputError(f"the inner region must have a positive size, got {half_side}",
                      field="scene_radius")
-  rotation = _up_rotation(cameras)
   scale = 1.0 / half_side
   world_from_source = poses_lib.similarity(scale, rotation, -scale * rotation @ centre)
   near = DEFAULT_NEAR_FRACTION * float(np.median(distances)) * scale

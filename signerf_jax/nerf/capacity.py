@@ -26,6 +26,12 @@ import numpy as np
 from signerf_jax.errors import InputError
 
 
+def camera_distances(bounds, cameras) -> np.ndarray:
+  """[N] distances (scene units) of the cameras to the centre of `bounds` ([2, 3] min, max)."""
+  centre = np.mean(np.asarray(bounds, np.float64), axis=0)
+  return np.linalg.norm(np.asarray(cameras.positions, np.float64) - centre, axis=-1)
+
+
 @dataclasses.dataclass(frozen=True)
 class SceneInfo:
   """What the model must know about a scene (JSON-friendly; saved in every run directory).
@@ -55,9 +61,8 @@ class SceneInfo:
   @classmethod
   def from_dataset(cls, dataset) -> "SceneInfo":
     bounds = np.asarray(dataset.scene_bounds, np.float64)
-    centre = bounds.mean(axis=0)
     cameras = dataset.cameras
-    distances = np.linalg.norm(np.asarray(cameras.positions) - centre, axis=-1)
+    distances = camera_distances(bounds, cameras)
     focal = np.asarray(cameras.fx, np.float64)
     background = dataset.background_color
     return cls(

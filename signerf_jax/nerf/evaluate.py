@@ -16,6 +16,7 @@ from signerf_jax.metrics import image as image_metrics
 from signerf_jax.metrics import lpips
 from signerf_jax.nerf import checkpoint, render, train
 from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.capacity import camera_distances
 
 # Near-camera floaters: render weight nearer than this fraction of the scene radius.
 NEAR_CAMERA_FRACTION = 0.05
@@ -54,8 +55,7 @@ def load_run(run_dir: str | os.PathLike) -> TrainedRun:
 def scene_radius(model: nerf_model.NerfModel, cameras) -> float:
   """The cameras' median distance to the centre of the modelled region (scene units): the
   scale near-camera floaters are measured against."""
-  centre = np.mean(np.asarray(model.scene.bounds, np.float64), axis=0)
-  return float(np.median(np.linalg.norm(np.asarray(cameras.positions) - centre, axis=-1)))
+  return float(np.median(camera_distances(model.scene.bounds, cameras)))
 
 
 def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset, chunk_size: int = 4096,
