@@ -9,10 +9,11 @@ Scenes (in ../shared/data; `SIGNERF_SHARED_DATA` points elsewhere):
   fern                    LLFF fern images_8 (504x378), every 8th view held out;
   lego                    Blender lego at 100^2, its 25 test views;
   lego_12                 the same with 12 training views (0, 8, ..., 88 of the 100).
-Each trains once with the schedule spanning its longest time and is evaluated at every time in
-`seconds` (training time excludes evaluation; it includes compilation). Writes
+Each trains once with the schedule spanning its longest time and is evaluated on its held-out
+views at every time in `seconds`, and on 16 training views (the generalisation gap) at the last
+(training time excludes evaluation; it includes compilation). Writes
 experiments/results/bench_nerf.{json,png,gin} and bench_nerf_<scene>.png (held-out views: the
-photo, the render and its depth).
+photo, the render and its median depth); `--name STEM` writes STEM.* and STEM_<scene>.png.
 """
 
 from __future__ import annotations
@@ -72,38 +73,45 @@ def load_scene(name: str):
 
 
 def figure(held_out, renders) -> np.ndarray:
-  """Rows of held-out views: photo, render, depth."""
+  """Rows of held-out views: photo, render, median depth."""
   views = np.linspace(0, held_out.num_images - 1, FIGURE_VIEWS).round().astype(int)
-  rows = [[held_out.images[i], renders["rgb"][i], render.depth_image(renders["depth"][i])]
+  rows = [[held_out.images[i], renders["rgb"][i], render.depth_image(renders["median_depth"][i])]
           for i in views]
-  labels = [[f"{held_out.image_names[i]}", "render", "depth"] for i in views]
+  labels = [[f"{held_out.image_names[i]}", "render", "median depth"] for i in views]
   return figures.image_grid(rows, labels)
 
 
-def train_and_measure(name: str, seconds: Sequence[float]) -> dict[str, Any]:
-  """Trains `name` with the schedule spanning max(seconds), evaluating at each time."""
+def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path) -> dict[str, Any]:
+  """Trains `name` with the schedule spanning max(seconds), evaluating at each time; held-out
+  views (`figure`) go to `figure_path`."""
+  seconds = sorted(seconds)
   training, held_out = load_scene(name)
   model = train.build_model(training)
-  config = dataclasses.replace(train.TrainConfig(), max_seconds=max(seconds),
+  config = dataclasses.replace(train.TrainConfig(), max_seconds=seconds[-1],
                                steps=1_000_000_000)
   trainer = train.make_trainer(training, model=model, config=config)
   curve, renders = [], None
   for limit in seconds:
     trainer.run(until_seconds=limit, progress=False)
     started = time.perf_counter()
-    report, renders = evaluate.generalisation_report(model, trainer.state.variables, held_out,
-                                                     training)
-    held_out_metrics = report["held_out"]
-    point = {"seconds": trainer.seconds_trained, "step": trainer.step,
-             "held_out": held_out_metrics, "train": report["train"],
-             "generalisation_gap_db": report["generalisation_gap_db"],
-             "eval_seconds": time.perf_counter() - started}
+    point = {"seconds": trainer.seconds_trained, "step": trainer.step}
+    if limit == seconds[-1]:
+      report, renders = evaluate.generalisation_report(model, trainer.state.variables, held_out,
+                                                       training)
+      point.update(held_out=report["held_out"], train=report["train"],
+                   generalisation_gap_db=report["generalisation_gap_db"])
+    else:
+      # The training views are rendered only at the end: at 400^2 they would double the time
+      # spent evaluating.
+      point["held_out"], renders = evaluate.evaluate(model, trainer.state.variables, held_out)
+    point["eval_seconds"] = time.perf_counter() - started
     curve.append(point)
+    held_out_metrics = point["held_out"]
+    train_psnr = f", train {point['train']['psnr']:.2f} dB" if "train" in point else ""
     print(f"[{name}] {point['seconds']:.0f} s, step {point['step']}: held-out "
-          f"{held_out_metrics['psnr']:.2f} dB / SSIM {held_out_metrics['ssim']:.3f}, train "
-          f"{report['train']['psnr']:.2f} dB, near-camera weight "
-          f"{held_out_metrics['near_camera_weight']:.4f}", flush=True)
-  files.write_image(RESULTS / f"bench_nerf_{name}.png", figure(held_out, renders))
+          f"{held_out_metrics['psnr']:.2f} dB / SSIM {held_out_metrics['ssim']:.3f}{train_psnr}, "
+          f"near-camera weight {held_out_metrics['near_camera_weight']:.4f}", flush=True)
+  files.write_image(figure_path, figure(held_out, renders))
   rays = trainer.step * model.capacity.rays_per_batch
   return {
       "train_views": training.num_images, "held_out_views": held_out.num_images,
@@ -112,6 +120,7 @@ def train_and_measure(name: str, seconds: Sequence[float]) -> dict[str, Any]:
       "curve": curve,
       "held_out_psnr_at_seconds": {str(int(limit)): point["held_out"]["psnr"]
                                    for limit, point in zip(seconds, curve)},
+      "generalisation_gap_db": curve[-1]["generalisation_gap_db"],
       "training_samples_per_second": trainer.samples_trained / max(trainer.seconds_trained, 1e-9),
       "training_rays_per_second": rays / max(trainer.seconds_trained, 1e-9),
       "steps_per_second": trainer.step / max(trainer.seconds_trained, 1e-9),
@@ -123,14 +132,15 @@ def train_and_measure(name: str, seconds: Sequence[float]) -> dict[str, Any]:
 def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
                   seconds: dict[str, Sequence[float]] | None = None,
                   machine_shared: bool = False,
-                  progress_path: Path | None = None) -> dict[str, Any]:
+                  output_stem: str = "bench_nerf") -> dict[str, Any]:
   """Runs every scene.
 
   Args:
     scenes: names from SCENES.
     seconds: per scene, the training times at which to evaluate.
     machine_shared: record whether other jobs shared the CPU (timings are then pessimistic).
-    progress_path: if given, the partial result is written there after every scene.
+    output_stem: results/<stem>_<scene>.png holds each scene's held-out views, and
+      results/<stem>.partial.json the result so far after every scene.
   """
   seconds = dict(seconds or {})
   result: dict[str, Any] = {
@@ -142,9 +152,9 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
       "scenes": {},
   }
   for name in scenes:
-    result["scenes"][name] = train_and_measure(name, seconds.get(name, (60, 120, 300, 600)))
-    if progress_path is not None:
-      files.write_json(progress_path, result)
+    result["scenes"][name] = train_and_measure(name, seconds.get(name, (60, 120, 300, 600)),
+                                               RESULTS / f"{output_stem}_{name}.png")
+    files.write_json(RESULTS / f"{output_stem}.partial.json", result)
   result["load_average_at_end"] = os.getloadavg()
   return result
 
@@ -166,7 +176,7 @@ def main() -> None:
   parser.add_argument("--name", default="bench_nerf", help="output file stem in results/")
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
-  result = run_benchmark(progress_path=RESULTS / f"{args.name}.partial.json")
+  result = run_benchmark(output_stem=args.name)
   files.write_text(RESULTS / f"{args.name}.gin", gin.config_str())
   files.write_json(RESULTS / f"{args.name}.json", result)
   plot(result, RESULTS / f"{args.name}.png")

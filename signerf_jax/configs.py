@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Sequence
 
 import gin
+from gin import config_parser
 
 from signerf_jax import files
 from signerf_jax.errors import InputError
@@ -25,11 +26,51 @@ def resolve_gin_file(name: str | os.PathLike) -> Path:
   raise InputError(f"gin file not found (also looked in {GIN_CONFIG_DIR})", name)
 
 
+def check_gin_is_data(text: str, source: str | os.PathLike | None,
+                      including: tuple[Path, ...] = ()) -> None:
+  """Refuses gin text that would run code, before gin sees it.
+
+  gin executes `import` (and `from ... import`) statements: any module on the path, or one
+  placed beside a copied run directory, would run. Configuration here is data: bindings of
+  registered configurables only (their values are literals, macros and references). Files
+  named by `include` are checked the same way.
+
+  Args:
+    text: gin file contents or one binding.
+    source: the file (or "gin_param") named in errors.
+    including: files already being checked (an include cycle is an error, not a recursion).
+  Raises:
+    InputError naming the file and line of the first statement that is not a binding.
+  """
+  try:
+    statements = list(config_parser.ConfigParser(text, gin.config.ParserDelegate(
+        skip_unknown=True)))
+  except SyntaxError as error:
+    raise InputError(f"line {error.lineno}: not gin syntax: {error.msg}", source) from None
+  for statement in statements:
+    line = f"line {statement.location.line_num}"
+    if isinstance(statement, config_parser.ImportStatement):
+      raise InputError(f"{line}: `{statement.location.line_content.strip()}` would run code; "
+                       "gin files here may only bind parameters of signerf_jax", source,
+                       "import")
+    if isinstance(statement, config_parser.IncludeStatement):
+      included = resolve_gin_file(statement.filename).resolve()
+      if included in including:
+        raise InputError(f"{line}: `include` cycle through {included}", source, "include")
+      check_gin_is_data(included.read_text(), included, including + (included,))
+
+
 def parse_gin(gin_files: Sequence[str | os.PathLike] = (), gin_params: Sequence[str] = (),
               finalize: bool = True) -> None:
-  """Clears any previous bindings, then applies files in order and parameters on top."""
+  """Clears any previous bindings, then applies files in order and parameters on top (each
+  checked first: `check_gin_is_data`)."""
   gin.clear_config()
-  paths = [str(resolve_gin_file(name)) for name in gin_files]
+  paths = [resolve_gin_file(name) for name in gin_files]
+  for path in paths:
+    check_gin_is_data(path.read_text(), path, (path.resolve(),))
+  for binding in gin_params:
+    check_gin_is_data(binding, "gin_param")
+  paths = [str(path) for path in paths]
   gin.add_config_file_search_path(str(GIN_CONFIG_DIR))
   try:
     gin.parse_config_files_and_bindings(paths, list(gin_params), finalize_config=finalize)

@@ -238,8 +238,10 @@ def derive_capacity(scene: SceneInfo,
       samples_per_ray=samples_per_ray,
       proposal_finest_resolution=min(finest, 256),
       proposal_log2_table_size=min(log2_table_size, 17),
-      # Real captures put cameras among the content they see; synthetic bounded scenes do not.
-      near_gradient_scaling=not bounded,
+      # 360-degree captures put cameras among the content they see. Forward-facing ones see
+      # it all in front of them, much of it nearer than the scene centre, whose gradients the
+      # scaling would damp (fern: 22.2 dB with it, 23.0 without, at 300 s).
+      near_gradient_scaling=contract,
   )
   return dataclasses.replace(capacity, **dict(overrides or {}))
 

@@ -165,12 +165,18 @@ def depth_image(depth: np.ndarray, near: float | None = None, far: float | None 
 
 
 def write_renders(directory: str | os.PathLike, names, outputs: dict[str, np.ndarray]) -> None:
-  """Writes per view: <name>.png (colour), <name>.depth.exr (z-depth), <name>.depth.png (the
-  depth as a picture, `depth_image`), <name>.accumulation.png."""
+  """Writes per view: <name>.png (colour), <name>.depth.exr (median z-depth, scene units),
+  <name>.depth.png (that depth as a picture, `depth_image`), <name>.accumulation.png.
+
+  Median depth (where the accumulated weight reaches one half), not the expected depth: in an
+  unbounded scene a percent of weight left on the last interval, reaching hundreds of scene
+  units away, dominates the expected depth and hides the surfaces.
+  """
   directory = Path(directory)
   for index, name in enumerate(names):
     stem = Path(name).with_suffix("").as_posix().replace("/", "_").lstrip("._")
+    depth = outputs["median_depth"][index]
     files.write_image(directory / f"{stem}.png", outputs["rgb"][index])
-    files.write_exr(directory / f"{stem}.depth.exr", outputs["depth"][index])
-    files.write_image(directory / f"{stem}.depth.png", depth_image(outputs["depth"][index]))
+    files.write_exr(directory / f"{stem}.depth.exr", depth)
+    files.write_image(directory / f"{stem}.depth.png", depth_image(depth))
     files.write_image(directory / f"{stem}.accumulation.png", outputs["accumulation"][index])

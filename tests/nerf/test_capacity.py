@@ -78,7 +78,10 @@ def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
   real = capacity.derive_capacity(dataclasses.replace(LEGO_100, kind="unbounded",
                                                       background_color=None))
   synthetic = capacity.derive_capacity(LEGO_100)
+  forward_facing = capacity.derive_capacity(dataclasses.replace(LEGO_100, kind="forward_facing",
+                                                                background_color=None))
   assert real.near_gradient_scaling and not synthetic.near_gradient_scaling
+  assert not forward_facing.near_gradient_scaling
   line = capacity.describe(real)
   assert "near-camera gradient scaling" in line and "contracted unbounded space" in line
   assert "proposal sampling" in line and "appearance codes" in line
