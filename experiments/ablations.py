@@ -241,7 +241,7 @@ def main(argv=None) -> int:
   parser.add_argument("--out", default="outputs/ablations", help="the edit runs (resumed)")
   parser.add_argument("--results", default=str(RESULTS),
                       help="where ablations.json, .gin and .png are written")
-  commands.add_gin_arguments(parser)
+  commands.add_common_arguments(parser)
   args = parser.parse_args(argv)
   start = time.perf_counter()
   gin_files = ["demo", "ablations", *(["ablations_smoke"] if args.smoke else []), *args.gin_file]

@@ -242,8 +242,7 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--gin_file", action="append", default=[])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   parser.add_argument("--output", default=str(RESULTS / "bench_diffusion.json"))
   args = parser.parse_args(argv)
   configs.parse_gin(args.gin_file or ["bench_diffusion"], args.gin_param)

@@ -147,8 +147,7 @@ def benchmark(mesh_path: str = str(DEFAULT_MESH), num_views: int = 8, size: int 
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--gin_file", action="append", default=[])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
   try:

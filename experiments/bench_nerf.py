@@ -171,11 +171,10 @@ def plot(result: dict[str, Any], path: Path) -> None:
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--gin_file", action="append", default=["bench_nerf"])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   parser.add_argument("--name", default="bench_nerf", help="output file stem in results/")
   args = parser.parse_args()
-  configs.parse_gin(args.gin_file, args.gin_param)
+  configs.parse_gin(["bench_nerf", *args.gin_file], args.gin_param)
   result = run_benchmark(output_stem=args.name)
   files.write_text(RESULTS / f"{args.name}.gin", gin.config_str())
   files.write_json(RESULTS / f"{args.name}.json", result)

@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.diffusion import safetensors_io
+from signerf_jax import safetensors_io
 from signerf_jax.metrics import lpips
 
 

@@ -137,8 +137,7 @@ def main(argv=None) -> int:
   parser.add_argument("--data", default=str(DEFAULT_DATA),
                       help="the generated dataset (experiments/make_default_model_data.py)")
   parser.add_argument("--output", default=str(RESULTS / "default_model.json"))
-  parser.add_argument("--gin_file", action="append", default=[])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   args = parser.parse_args(argv)
   start = time.monotonic()
   load_at_start = os.getloadavg()

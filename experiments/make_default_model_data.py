@@ -9,7 +9,7 @@ experiments/results/default_model_data.json (and .gin, the full configuration):
     resumed run still reports it), bytes per sample, and the size and one-process time
     extrapolated to 4,000 sheets + 8,000 single views (the issue's example);
   * the ground-truth check of the prompt-adherence gate: the share of the objects in the eval
-    split whose dominant colour (`appearance.dominant_color`, what the gate applies to
+    split whose dominant colour (`colors.dominant_color`, what the gate applies to
     generated images) is their colour label; the gate (>= 0.9) is only meaningful if the
     renders themselves pass it by a margin;
   * how much of the frame the object covers: its silhouette's bounding box as a fraction of the
@@ -29,7 +29,8 @@ import gin
 import numpy as np
 
 from signerf_jax import configs, files
-from signerf_jax.default_model import appearance, dataset_builder, samples
+from signerf_jax.default_model import dataset_builder, samples
+from signerf_jax.metrics import colors
 
 RESULTS = Path(__file__).resolve().parent / "results"
 EXTRAPOLATE_TO = {"sheets": 4000, "singles": 8000}
@@ -48,7 +49,7 @@ def color_check(directory: str) -> dict:
     for shard in _shards(directory, "eval", kind):
       for rgb, silhouette, label in zip(shard["rgb"], shard["silhouette"], shard["color"]):
         for view_rgb, view_silhouette in zip(rgb, silhouette):
-          found = appearance.dominant_color(view_rgb[view_silhouette > 0] / 255.0)
+          found = colors.dominant_color(view_rgb[view_silhouette > 0] / 255.0)
           hits += found == label
           total += 1
           if found != label:
@@ -79,8 +80,7 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--out", help="dataset directory (else default_model_data.output_directory)")
   parser.add_argument("--workers", type=int, default=1, help="processes making shards")
-  parser.add_argument("--gin_file", action="append", default=[])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   parser.add_argument("--output", default=str(RESULTS / "default_model_data.json"))
   args = parser.parse_args(argv)
   configs.parse_gin(args.gin_file or ["default_model_data"], args.gin_param)

@@ -113,8 +113,7 @@ def measure(tile_size: int = 256, margin: float = 0.15, max_upscale: float = 2.0
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--gin_file", action="append", default=[])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
   result = measure()

@@ -37,7 +37,9 @@ def _text(canvas, text: str, origin, colour=BLACK, scale: float = 0.45) -> None:
 
 
 def _ticks(low: float, high: float, count: int = 5) -> np.ndarray:
-  """About `count` round tick values covering [low, high]."""
+  """About `count` round tick values covering [low, high] (a single value gets ticks around it)."""
+  if high <= low:
+    low, high = low - max(abs(low), 1.0) / 2, high + max(abs(high), 1.0) / 2
   step = (high - low) / count
   magnitude = 10.0**np.floor(np.log10(step))
   step = min((factor * magnitude for factor in (1, 2, 5, 10) if factor * magnitude >= step))

@@ -50,11 +50,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax import configs, files, parallel
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.data import synthetic
 from signerf_jax.default_model import export
 from signerf_jax.default_model import model as model_lib
 from signerf_jax.diffusion import pipeline as pipeline_lib
-from signerf_jax.diffusion import word_tokenizer
 from signerf_jax.editing import crops, generation, update
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
@@ -417,8 +417,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--gin_file", action="append", default=[])
-  parser.add_argument("--gin_param", action="append", default=[])
+  configs.add_gin_arguments(parser)
   parser.add_argument("--coordinator_address", help="HOST:PORT of process 0 (multi-host)")
   parser.add_argument("--num_processes", type=int, default=1)
   parser.add_argument("--process_id", type=int, default=0)

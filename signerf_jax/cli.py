@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("signerf_jax.nerf.commands.train", "train (or resume) a NeRF on a dataset"),
     "render": ("signerf_jax.nerf.commands.render",
                "render a trained NeRF's views (PNG, depth EXR) and a camera-path video"),
-    "eval": ("signerf_jax.nerf.commands.evaluate",
+    "eval": ("signerf_jax.editing.commands.evaluate",
              "evaluate a trained NeRF (PSNR, SSIM, depth error) or an edit (--edit) as one "
              "JSON line"),
     "edit": ("signerf_jax.editing.commands.edit",

@@ -1,7 +1,8 @@
-"""gin plumbing shared by every command and experiment: parse, locate, save."""
+"""gin plumbing shared by every command and experiment: flags, parse, locate, save."""
 
 from __future__ import annotations
 
+import argparse
 import os
 from pathlib import Path
 from typing import Sequence
@@ -15,6 +16,15 @@ from signerf_jax.errors import InputError
 # gin_configs/ sits next to the package in the repository (the design card fixes the layout).
 GIN_CONFIG_DIR = Path(__file__).resolve().parent.parent / "gin_configs"
 SAVED_CONFIG_NAME = "config.gin"
+
+
+def add_gin_arguments(parser: argparse.ArgumentParser,
+                      example_binding: str = "TrainConfig.steps = 2000") -> None:
+  """--gin_file and --gin_param (repeatable; files are parsed first, in order, then bindings)."""
+  parser.add_argument("--gin_file", action="append", default=[],
+                      help="gin file (a path or a name in gin_configs/); repeatable")
+  parser.add_argument("--gin_param", action="append", default=[],
+                      help=f"gin binding such as '{example_binding}'; repeatable")
 
 
 def resolve_gin_file(name: str | os.PathLike) -> Path:

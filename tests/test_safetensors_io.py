@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from safetensors.numpy import save_file
 
-from signerf_jax.diffusion import safetensors_io
+from signerf_jax import safetensors_io
 from signerf_jax.errors import InputError
 
 

@@ -11,10 +11,7 @@ from signerf_jax.data import synthetic
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--out", required=True, help="directory to write the dataset to")
-  parser.add_argument("--gin_file", action="append", default=[],
-                      help="gin file (a path or a name in gin_configs/); repeatable")
-  parser.add_argument("--gin_param", action="append", default=[],
-                      help="gin binding such as 'synthetic_cameras.image_size = 128'; repeatable")
+  configs.add_gin_arguments(parser, "synthetic_cameras.image_size = 128")
   parser.add_argument("--seed", type=int, default=0, help="random seed of the scene")
 
 

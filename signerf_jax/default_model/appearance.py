@@ -16,38 +16,21 @@ Patterns, in object units (footprint radius = 1), before the appearance's random
 Edges are a linear ramp EDGE_WIDTH wide so that 64-pixel renders do not alias badly.
 
 The accent covers at most half of the surface and keeps the base hue, so the base colour stays
-the dominant colour of the object: `dominant_color` (used to check prompt adherence) recovers it
+the dominant colour of the object: `metrics.colors.dominant_color` (prompt adherence) recovers it
 from shaded renders. Shading itself (Lambert plus ambient under a white light, which keeps hue)
 is the synthetic renderer's (`signerf_jax.data.synthetic.render`).
 """
 
 from __future__ import annotations
 
-import colorsys
 import dataclasses
 
 import numpy as np
 import trimesh
 
 from signerf_jax.errors import InputError
+from signerf_jax.metrics.colors import COLORS, PALETTE
 
-# name -> (base albedo, accent albedo). Hues are >= 24 degrees apart; white light keeps them.
-PALETTE: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
-    "red": ((0.80, 0.10, 0.08), (0.36, 0.045, 0.036)),
-    "orange": ((0.95, 0.50, 0.08), (0.43, 0.225, 0.036)),
-    "yellow": ((0.92, 0.85, 0.12), (0.41, 0.38, 0.054)),
-    "green": ((0.15, 0.65, 0.18), (0.068, 0.29, 0.081)),
-    "blue": ((0.12, 0.25, 0.85), (0.054, 0.11, 0.38)),
-    "purple": ((0.50, 0.15, 0.70), (0.225, 0.068, 0.315)),
-    "white": ((0.92, 0.92, 0.90), (0.45, 0.45, 0.44)),
-    "black": ((0.07, 0.07, 0.08), (0.22, 0.22, 0.23)),
-}
-COLORS = tuple(PALETTE)
-ACHROMATIC_COLORS = ("white", "black")
-# The palette colours with a hue, and their base colours' hues in [0, 1) (`pixel_hue_colors`).
-CHROMATIC_COLORS = tuple(name for name in COLORS if name not in ACHROMATIC_COLORS)
-CHROMATIC_HUES = np.asarray([colorsys.rgb_to_hsv(*PALETTE[name][0])[0]
-                             for name in CHROMATIC_COLORS])
 PATTERNS = ("plain", "striped", "checkered", "spotted")
 
 STRIPE_PERIOD = 0.55
@@ -61,14 +44,6 @@ PATTERN_SCALE_RANGE = (0.8, 1.25)
 STRIPE_TILTS_DEGREES = (0.0, 90.0, 45.0)
 STRIPE_TILT_PROBABILITIES = (0.5, 0.3, 0.2)
 
-# `dominant_color`: a pixel is chromatic above this saturation (and this value); an object is
-# chromatic when most of its pixels are. An achromatic object is white when its brighter pixels
-# (the WHITE_PERCENTILE) exceed WHITE_MIN_VALUE: black and its accent stay below it under full
-# light, white's base colour stays above it even under ambient light alone (>= 0.3).
-CHROMATIC_SATURATION = 0.35
-CHROMATIC_MIN_VALUE = 0.06
-WHITE_PERCENTILE = 75
-WHITE_MIN_VALUE = 0.25
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,46 +105,3 @@ def random_appearance(rng: np.random.Generator, color: str, pattern: str) -> App
               @ trimesh.transformations.rotation_matrix(np.radians(tilt), (1.0, 0.0, 0.0)))[:3, :3]
   return Appearance(color=color, pattern=pattern, rotation=rotation,
                     offset=rng.uniform(-1.0, 1.0, 3), scale=float(rng.uniform(*PATTERN_SCALE_RANGE)))
-
-
-def pixel_hue_colors(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """Each pixel's nearest chromatic palette colour by hue (hue is unchanged by white light).
-
-  Args:
-    rgb: [..., 3] colours in [0, 1].
-  Returns:
-    chromatic: [...] bool, saturated and bright enough for its hue to mean something;
-    nearest: [...] index into `CHROMATIC_COLORS` of the palette hue nearest to the pixel's.
-  """
-  rgb = np.asarray(rgb, np.float64)
-  value = rgb.max(-1)
-  chroma = value - rgb.min(-1)
-  chromatic = (chroma / np.maximum(value, 1e-6) > CHROMATIC_SATURATION) & (
-      value > CHROMATIC_MIN_VALUE)
-  red, green, blue = np.moveaxis(rgb, -1, 0)
-  safe_chroma = np.maximum(chroma, 1e-12)
-  # Hue in [0, 1) as colorsys defines it, vectorised.
-  hue = np.where(value == red, (green - blue) / safe_chroma,
-                 np.where(value == green, 2.0 + (blue - red) / safe_chroma,
-                          4.0 + (red - green) / safe_chroma))
-  hue = np.mod(hue / 6.0, 1.0)
-  gap = np.abs(hue[..., None] - CHROMATIC_HUES)
-  return chromatic, np.argmin(np.minimum(gap, 1.0 - gap), -1)
-
-
-def dominant_color(rgb: np.ndarray) -> str:
-  """The PALETTE colour an object's pixels show most, robust to shading.
-
-  Args:
-    rgb: [P, 3] the object's pixel colours in [0, 1] (P >= 1).
-  Returns:
-    For mostly saturated pixels, the chromatic palette colour whose hue is nearest to most of
-    them (`pixel_hue_colors`); otherwise "white" or "black" by the value of the brighter pixels.
-  """
-  rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
-  chromatic, nearest = pixel_hue_colors(rgb)
-  if chromatic.mean() < 0.5:
-    value = rgb.max(-1)
-    return "white" if np.percentile(value, WHITE_PERCENTILE) > WHITE_MIN_VALUE else "black"
-  votes = np.bincount(nearest[chromatic], minlength=len(CHROMATIC_COLORS))
-  return CHROMATIC_COLORS[int(np.argmax(votes))]

@@ -18,9 +18,10 @@ import dataclasses
 import gin
 import numpy as np
 
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import appearance
 from signerf_jax.default_model import objects
-from signerf_jax.diffusion import word_tokenizer
+from signerf_jax.metrics import colors
 
 PATTERN_ADJECTIVES = {"plain": "plain", "striped": "striped", "checkered": "checkered",
                       "spotted": "spotted"}
@@ -33,7 +34,7 @@ class Attributes:
 
   Attributes:
     kind: an `objects.KINDS` label.
-    color: an `appearance.COLORS` name.
+    color: a `metrics.colors.COLORS` name.
     pattern: an `appearance.PATTERNS` name.
   """
 
@@ -98,7 +99,7 @@ def _noun_phrases() -> list[tuple[tuple[str, ...], str]]:
 def parse_caption(text: str) -> Attributes:
   """The kind, colour and pattern a caption names (None for those it does not name)."""
   words = word_tokenizer.split_words(text)
-  color = next((word for word in words if word in appearance.PALETTE), None)
+  color = colors.named_color(words)
   pattern = next((name for name, adjective in PATTERN_ADJECTIVES.items() if adjective in words),
                  None)
   for name, phrase in PATTERN_PHRASES.items():
@@ -114,6 +115,6 @@ def parse_caption(text: str) -> Attributes:
 
 def vocabulary() -> list[str]:
   """Every word a caption can contain (for the word tokenizer), sorted."""
-  texts = ["a an", *appearance.COLORS, *PATTERN_ADJECTIVES.values(), *PATTERN_PHRASES.values(),
+  texts = ["a an", *colors.COLORS, *PATTERN_ADJECTIVES.values(), *PATTERN_PHRASES.values(),
            *(noun for nouns in objects.KIND_NOUNS.values() for noun in nouns)]
   return sorted({word for text in texts for word in word_tokenizer.split_words(text)})

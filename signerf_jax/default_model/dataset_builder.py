@@ -48,11 +48,12 @@ import tqdm
 
 from signerf_jax import configs
 from signerf_jax import files
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import appearance
 from signerf_jax.default_model import captions
 from signerf_jax.default_model import samples
-from signerf_jax.diffusion import word_tokenizer
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import colors
 
 FORMAT = "signerf-default-model-data"
 VERSION = 1
@@ -154,10 +155,10 @@ def sample_attributes(split: str, sample_index: int, catalogue) -> captions.Attr
   """The eval split's balanced attributes (None: drawn at random, as in train)."""
   if split != "eval":
     return None
-  colors, patterns = appearance.COLORS, appearance.PATTERNS
+  names, patterns = colors.COLORS, appearance.PATTERNS
   return captions.Attributes(kind=catalogue[sample_index % len(catalogue)].name,
-                             color=colors[sample_index % len(colors)],
-                             pattern=patterns[(sample_index // len(colors)) % len(patterns)])
+                             color=names[sample_index % len(names)],
+                             pattern=patterns[(sample_index // len(names)) % len(patterns)])
 
 
 def make_shard_arrays(spec: ShardSpec, scene_sampling: samples.SceneSampling,

@@ -6,7 +6,7 @@ given and the shape has to come from the control depth), with the stored control
 sample's caption, starting from noise:
 
 1. Prompt adherence: single views whose caption names a colour, at ControlNet scale 1; a view
-   passes when the dominant colour (`appearance.dominant_color`) of its generated object's pixels
+   passes when the dominant colour (`metrics.colors.dominant_color`) of its generated object's pixels
    is the caption's colour (`editing.evaluation.prompt_color_adherence`). No object: a miss.
    Its ceiling (`vae_ceiling`): the share of the same views whose true render keeps its colour
    through the VAE round trip (what a perfect denoiser can reach through this VAE).
@@ -46,7 +46,7 @@ the gate's boxes leave the whole shape to the depth), with where the IoU is lost
 precision and recall, and the share of masked ground pixels off by more than the threshold), and
 with the object found by its caption's hue (`segment_by_hue`, views whose caption names a
 chromatic colour): the masked pixels whose hue is nearest that colour's
-(`appearance.pixel_hue_colors`), cleaned the same way. Repainted ground and background rarely
+(`metrics.colors.pixel_hue_colors`), cleaned the same way. Repainted ground and background rarely
 take the object's hue, so this measures the object's own silhouette where the difference
 segmentation also counts a hazy repaint of the box as object.
 """
@@ -65,7 +65,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax import parallel
-from signerf_jax.default_model import appearance
 from signerf_jax.default_model import batches
 from signerf_jax.default_model import captions as captions_lib
 from signerf_jax.default_model import samples
@@ -76,6 +75,7 @@ from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator, SheetInputs
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import masks as masks_lib
+from signerf_jax.metrics import colors
 
 FULL_SCALE = 1.0  # The ControlNet scale of prompt adherence, consistency and the shape gate.
 KEY_PURPOSES = ("single", "sheet", "independent", "slot")
@@ -197,19 +197,19 @@ def _without_specks(views: np.ndarray, min_pixels: int) -> np.ndarray:
   return np.stack(cleaned)
 
 
-def segment_by_hue(generated: np.ndarray, masks: np.ndarray, colors: Sequence[str],
+def segment_by_hue(generated: np.ndarray, masks: np.ndarray, caption_colors: Sequence[str],
                    min_component_pixels: int) -> np.ndarray:
   """The generated objects as the masked pixels of their caption's hue (module docstring).
 
   Args:
     generated: [N, H, W, 3] in [0, 1]; masks: [N, H, W] (>= 0.5: regenerated).
-    colors: N chromatic palette colour names (`appearance.CHROMATIC_COLORS`).
+    caption_colors: N chromatic palette colour names (`colors.CHROMATIC_COLORS`).
     min_component_pixels: smaller components are dropped, smaller holes filled.
   Returns:
     [N, H, W] bool.
   """
-  chromatic, nearest = appearance.pixel_hue_colors(generated)
-  named = np.asarray([appearance.CHROMATIC_COLORS.index(color) for color in colors])
+  chromatic, nearest = colors.pixel_hue_colors(generated)
+  named = np.asarray([colors.CHROMATIC_COLORS.index(color) for color in caption_colors])
   inside = np.asarray(masks) >= 0.5
   return _without_specks(chromatic & (nearest == named[:, None, None]) & inside,
                          min_component_pixels) & inside
@@ -253,7 +253,7 @@ def object_colors(images: np.ndarray, objects: np.ndarray) -> tuple[list[str | N
   names, means = [], []
   for image, pixels in zip(np.asarray(images, np.float32), np.asarray(objects, bool)):
     empty = not pixels.any()
-    names.append(None if empty else appearance.dominant_color(image[pixels]))
+    names.append(None if empty else colors.dominant_color(image[pixels]))
     means.append(np.full(3, np.nan) if empty else image[pixels].mean(0))
   return names, np.stack(means)
 
@@ -531,7 +531,7 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
   # The same objects found by their caption's hue, where it names one (not a gate).
   named_colors = [captions_lib.parse_caption(caption).color for caption in views.captions]
   hue_views = [index for index, color in enumerate(named_colors)
-               if color in appearance.CHROMATIC_COLORS]
+               if color in colors.CHROMATIC_COLORS]
 
   def hue_iou(images: np.ndarray) -> float:
     if not hue_views:

@@ -33,15 +33,15 @@ import safetensors.numpy
 from flax import traverse_util
 
 from signerf_jax import files
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip import tokenizer as tokenizer_lib
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import model as model_lib
-from signerf_jax.diffusion import clip_text
 from signerf_jax.diffusion import controlnet as controlnet_lib
 from signerf_jax.diffusion import schedulers
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
 from signerf_jax.diffusion import unet as unet_lib
 from signerf_jax.diffusion import vae as vae_lib
 from signerf_jax.diffusion import weights
-from signerf_jax.diffusion import word_tokenizer
 
 DIFFUSERS_WEIGHTS = "diffusion_pytorch_model.safetensors"
 TRANSFORMERS_WEIGHTS = "model.safetensors"

@@ -30,13 +30,13 @@ import jax
 import numpy as np
 from flax import traverse_util
 
-from signerf_jax.diffusion import clip_text
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.diffusion import controlnet as controlnet_lib
 from signerf_jax.diffusion import model_configs
 from signerf_jax.diffusion import unet as unet_lib
 from signerf_jax.diffusion import vae as vae_lib
 from signerf_jax.diffusion import weights
-from signerf_jax.diffusion import word_tokenizer
 
 DIFFUSERS_VERSION = "0.42.1"
 TRANSFORMERS_VERSION = "5.23.0"

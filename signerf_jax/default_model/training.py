@@ -48,8 +48,8 @@ import tqdm
 from flax import struct
 
 from signerf_jax import files
+from signerf_jax.clip import text as clip_text
 from signerf_jax.default_model import model as model_lib
-from signerf_jax.diffusion import clip_text
 from signerf_jax.diffusion import schedulers
 from signerf_jax.errors import InputError
 

@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 import tqdm
 
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import batches
 from signerf_jax.default_model import dataset_builder
-from signerf_jax.diffusion import word_tokenizer
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
 

@@ -35,11 +35,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.diffusion import clip_text, sampler, schedulers
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip.tokenizer import Tokenizer, load_tokenizer
+from signerf_jax.diffusion import sampler, schedulers
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.controlnet import load_controlnet
 from signerf_jax.diffusion.layers import Dtype
-from signerf_jax.diffusion.tokenizer import Tokenizer, load_tokenizer
 from signerf_jax.diffusion.unet import load_unet
 from signerf_jax.diffusion.vae import load_vae
 from signerf_jax.errors import InputError

@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from signerf_jax.diffusion.clip_text import PromptEmbeddings
+from signerf_jax.clip.text import PromptEmbeddings
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.schedulers import Schedule
 from signerf_jax.diffusion.unet import UNet2DCondition

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 from flax import traverse_util
 
-from signerf_jax.diffusion import safetensors_io
+from signerf_jax import safetensors_io
 
 # diffusers attributes that are nn.ModuleLists: their items are named `<attribute>_<index>`.
 LIST_ATTRIBUTES = frozenset({

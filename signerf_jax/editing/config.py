@@ -26,11 +26,11 @@ from typing import Any
 
 import gin
 
-from signerf_jax import default_model
 from signerf_jax.errors import InputError
 
-# The shipped model (diffusers layout), trained by the project (see default_model/).
-DEFAULT_MODEL_DIR = Path(default_model.__file__).resolve().parent / "weights"
+# The shipped model (diffusers layout), trained by the project (see default_model/). A path,
+# not an import: default_model sits above the library (it trains with the editing code).
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[1] / "default_model" / "weights"
 SELECTION_KINDS = ("box", "proxy")
 NERF_UPDATES = ("auto", "finetune", "retrain")
 PRIMITIVE_PREFIX = "primitive:"

@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--prompt", help="what to insert (default: demo.prompt, 'a red cow')")
   parser.add_argument("--model", help="a diffusers ControlNet inpainting pipeline directory "
                       "(default: the shipped model)")
-  commands.add_gin_arguments(parser)
+  commands.add_common_arguments(parser)
 
 
 def proxy_mesh() -> str:

@@ -11,7 +11,7 @@ similarity, and adherence to the prompt's colour and the proxy's shape.
 * CLIP text-image directional similarity (`metrics.clip_similarity`) of the image edit and of
   the NeRF renders, when CLIP weights are given.
 * Prompt colour adherence: the share of views whose edited region's dominant colour
-  (`default_model.appearance.dominant_color`) is the colour the prompt names (when it names one
+  (`metrics.colors.dominant_color`) is the colour the prompt names (when it names one
   of the shipped model's palette colours).
 * Shape adherence (proxy selections): IoU between the pixels the edit changed and the proxy's
   visible silhouette.
@@ -25,12 +25,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax import camera as camera_lib
-from signerf_jax.default_model import appearance, captions
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.editing import crops
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator
 from signerf_jax.editing.update import TILE_FILL_COLOR, SlotViews
-from signerf_jax.metrics import consistency
+from signerf_jax.metrics import colors, consistency
 
 # A pixel counts as changed by the edit when its colour moved by more than this (mean over RGB).
 CHANGE_THRESHOLD = 0.1
@@ -76,11 +76,11 @@ def prompt_color_adherence(prompt: str, images: np.ndarray, selected: np.ndarray
                            ) -> dict[str, Any] | None:
   """Share of views whose selected pixels' dominant colour is the prompt's colour (None when the
   prompt names no palette colour or no view has selected pixels)."""
-  color = captions.parse_caption(prompt).color
+  color = colors.named_color(word_tokenizer.split_words(prompt))
   views = [index for index in range(len(images)) if selected[index].any()]
   if color is None or not views:
     return None
-  found = [appearance.dominant_color(images[index][selected[index]]) for index in views]
+  found = [colors.dominant_color(images[index][selected[index]]) for index in views]
   return {"color": color, "share": float(np.mean([name == color for name in found])),
           "dominant_colors": found}
 

@@ -47,10 +47,11 @@ from signerf_jax.editing.config import (EditConfig, EvaluationConfig, FinetuneCo
                                         UpdateConfig, as_json)
 from signerf_jax.editing.project import (EditDirectory, canonical_json, directory_fingerprint,
                                          frame_name, load_arrays, save_arrays)
+from signerf_jax.clip import similarity as clip_similarity
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import masks as masks_lib
 from signerf_jax.geometry import reference_cameras
-from signerf_jax.metrics import background, clip_similarity
+from signerf_jax.metrics import background
 from signerf_jax.nerf import checkpoint, evaluate, render, train
 
 STAGE_KEY_FILE = ".stage_key.json"

@@ -38,7 +38,7 @@ import numpy as np
 from flax import traverse_util
 
 from signerf_jax import math as safe_math
-from signerf_jax.diffusion import safetensors_io
+from signerf_jax import safetensors_io
 
 # torchvision's VGG16 ("D") up to relu5_3: convolutions per block and their output channels.
 BLOCK_CONVOLUTIONS = (2, 2, 3, 3, 3)

@@ -9,7 +9,8 @@ on resolution the images cannot show and on Adam updates of rows no sample touch
     finest cells a surface of the scene's size crosses (~ resolution^2), since empty cells only
     collide harmlessly (instant-NGP's argument);
   * samples: an occupancy grid for bounded scenes, marching steps about one finest cell long;
-    proposal networks otherwise, with scene contraction only for unbounded scenes;
+    proposal networks otherwise, with scene contraction for unbounded scenes and NDC's
+    perspective warp for forward-facing ones (finest cells then sized by pixel angles);
   * background: the dataset's constant colour for bounded scenes; otherwise the last sample's
     interval reaches infinity and the field models the background itself.
 """
@@ -23,13 +24,81 @@ from typing import Any, Mapping
 import gin
 import numpy as np
 
+from signerf_jax import camera as camera_lib
 from signerf_jax.errors import InputError
+from signerf_jax.nerf import sampling
 
 
 def camera_distances(bounds, cameras) -> np.ndarray:
   """[N] distances (scene units) of the cameras to the centre of `bounds` ([2, 3] min, max)."""
   centre = np.mean(np.asarray(bounds, np.float64), axis=0)
   return np.linalg.norm(np.asarray(cameras.positions, np.float64) - centre, axis=-1)
+
+
+Vector = tuple[float, float, float]
+
+
+def _as_vector(values) -> Vector:
+  return tuple(map(float, values))
+
+
+@dataclasses.dataclass(frozen=True)
+class PerspectiveWarp:
+  """A forward-facing scene's field coordinates, NDC's warp: `sampling.perspective` of points in
+  the cameras' mean frame, mapped from [low, high] onto [0, 1]^3 (`__call__`).
+
+  Attributes:
+    centre: the cameras' mean position (scene units).
+    rotation: rows are the mean camera's right, up and backward axes (it looks down -z).
+    low, high: the range of the warped coordinates over what the cameras see (`from_cameras`).
+  """
+
+  centre: Vector
+  rotation: tuple[Vector, Vector, Vector]
+  low: Vector
+  high: Vector
+
+  @classmethod
+  def from_cameras(cls, cameras, near: float, far: float) -> "PerspectiveWarp":
+    """The warp whose range holds what every camera sees from `near` to `far` (ray distances,
+    scene units): the rays through each image's corners and centre, at both distances."""
+    camera_to_world = np.asarray(cameras.camera_to_world, np.float64)
+    back = camera_to_world[:, :, 2].mean(0)
+    if np.linalg.norm(back) < 0.1:
+      raise InputError("the cameras look in all directions: not a forward-facing capture",
+                       field="scene_kind")
+    back /= np.linalg.norm(back)
+    right = np.cross(camera_to_world[:, :, 1].sum(0), back)
+    right /= np.linalg.norm(right)
+    rotation = np.stack([right, np.cross(back, right), back])
+    centre = camera_to_world[:, :, 3].mean(0)
+    count = len(camera_to_world)
+    pixel_x = np.array([0.0, cameras.width, 0.0, cameras.width, cameras.width / 2], np.float32)
+    pixel_y = np.array([0.0, 0.0, cameras.height, cameras.height, cameras.height / 2],
+                       np.float32)
+    rays = camera_lib.pixel_rays(cameras, np.repeat(np.arange(count), len(pixel_x)),
+                                 np.tile(pixel_x, count), np.tile(pixel_y, count))
+    origins, directions = np.asarray(rays.origins, np.float64), np.asarray(rays.directions)
+    points = np.concatenate([origins + distance * directions for distance in (near, far)])
+    warped = np.asarray(sampling.perspective((points - centre) @ rotation.T), np.float64)
+    return cls(_as_vector(centre), tuple(map(_as_vector, rotation)), _as_vector(warped.min(0)),
+               _as_vector(warped.max(0)))
+
+  @classmethod
+  def from_json(cls, value: Mapping[str, Any]) -> "PerspectiveWarp":
+    return cls(_as_vector(value["centre"]), tuple(map(_as_vector, value["rotation"])),
+               _as_vector(value["low"]), _as_vector(value["high"]))
+
+  @property
+  def image_plane_extent(self) -> float:
+    """The larger side of the warped image-plane range (tangent units)."""
+    return float(np.max(np.subtract(self.high[:2], self.low[:2])))
+
+  def __call__(self, points):
+    """Scene points [..., 3] -> [..., 3] warped field coordinates, [0, 1] inside the range."""
+    rotation, centre, low, high = (np.asarray(value, np.float32) for value in
+                                   (self.rotation, self.centre, self.low, self.high))
+    return (sampling.perspective((points - centre) @ rotation.T) - low) / (high - low)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +114,7 @@ class SceneInfo:
     width, height: training image size in pixels.
     pixel_footprint: scene units one pixel spans at the typical camera-to-scene distance.
     camera_distance: the cameras' median distance to the centre of the bounds (scene units).
+    perspective: forward-facing scenes' field-coordinate warp; None for the others.
   """
 
   bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
@@ -57,6 +127,7 @@ class SceneInfo:
   height: int
   pixel_footprint: float
   camera_distance: float
+  perspective: PerspectiveWarp | None = None
 
   @classmethod
   def from_dataset(cls, dataset) -> "SceneInfo":
@@ -76,6 +147,9 @@ class SceneInfo:
         height=int(dataset.height),
         pixel_footprint=float(np.median(distances / focal)),
         camera_distance=float(np.median(distances)),
+        perspective=(PerspectiveWarp.from_cameras(cameras, float(dataset.near),
+                                                  float(dataset.far))
+                     if dataset.scene_kind == "forward_facing" else None),
     )
 
   @classmethod
@@ -84,6 +158,8 @@ class SceneInfo:
     value["bounds"] = tuple(tuple(map(float, corner)) for corner in value["bounds"])
     if value["background_color"] is not None:
       value["background_color"] = tuple(value["background_color"])
+    if value.get("perspective") is not None:
+      value["perspective"] = PerspectiveWarp.from_json(value["perspective"])
     return cls(**value)
 
   @property
@@ -98,6 +174,8 @@ class Capacity:
 
   Attributes:
     contract: map unbounded space into a finite cube (mip-NeRF 360) before the grid.
+    perspective_warp: forward-facing scenes: the grid is over `sampling.perspective`
+      coordinates (NDC's warp) and samples are spaced evenly in disparity.
     background: "constant" (the scene's colour) or "last_sample" (last interval to infinity).
     sampler: "occupancy" (bounded scenes) or "proposal" (nerfacto-style proposal networks).
     num_levels, base_resolution, finest_resolution, log2_table_size, features_per_level, hashed:
@@ -148,6 +226,7 @@ class Capacity:
   near_gradient_scaling: bool = False
   coarse_to_fine: float = 0.0
   pose_refinement: bool = False
+  perspective_warp: bool = False
 
   @classmethod
   def from_json(cls, value: Mapping[str, Any]) -> "Capacity":
@@ -200,7 +279,11 @@ def derive_capacity(scene: SceneInfo,
                      "pixel_footprint")
   bounded = scene.kind == "bounded"
   contract = scene.kind == "unbounded"
+  perspective_warp = scene.perspective is not None
   inner_cells = oversampling * scene.extent / scene.pixel_footprint
+  if perspective_warp:  # One finest cell per pixel across the widest image-plane range.
+    focal = scene.camera_distance / scene.pixel_footprint
+    inner_cells = oversampling * focal * scene.perspective.image_plane_extent
   # Contraction squeezes the inner box into half of the grid's side.
   finest = max(base_resolution, _round_up(2 * inner_cells if contract else inner_cells, 8))
   num_levels = 1 + max(0, math.ceil(math.log(finest / base_resolution) / math.log(level_growth)))
@@ -242,6 +325,7 @@ def derive_capacity(scene: SceneInfo,
       # it all in front of them, much of it nearer than the scene centre, whose gradients the
       # scaling would damp (fern: 22.2 dB with it, 23.0 without, at 300 s).
       near_gradient_scaling=contract,
+      perspective_warp=perspective_warp,
   )
   return dataclasses.replace(capacity, **dict(overrides or {}))
 
@@ -249,15 +333,20 @@ def derive_capacity(scene: SceneInfo,
 def describe(capacity: Capacity) -> str:
   """One line saying what the model spends its capacity and regularisation on."""
   if capacity.sampler == "occupancy":
-    sampling = f"occupancy-grid sampling ({capacity.march_steps} steps per ray)"
+    sampler = f"occupancy-grid sampling ({capacity.march_steps} steps per ray)"
   else:
     counts = " > ".join(map(str, (*capacity.proposal_samples, capacity.samples_per_ray)))
-    sampling = f"proposal sampling ({counts} samples per ray)"
+    sampler = f"proposal sampling ({counts} samples per ray)"
+  region = "a bounded region"
+  if capacity.contract:
+    region = "contracted unbounded space"
+  elif capacity.perspective_warp:
+    region = "perspective-warped space (NDC's warp) sampled evenly in disparity"
   parts = [
-      "contracted unbounded space" if capacity.contract else "a bounded region",
+      region,
       f"{capacity.num_levels} grid levels {capacity.base_resolution}..{capacity.finest_resolution}"
       f" with up to 2^{capacity.log2_table_size} rows each",
-      sampling,
+      sampler,
       f"{capacity.rays_per_batch} rays per step",
       "the constant background colour" if capacity.background == "constant"
       else "the background modelled by the field",

@@ -116,8 +116,11 @@ class NerfModel:
     return None
 
   def to_unit_cube(self, points):
-    """Scene points [..., 3] -> field coordinates in [0, 1]^3 (contracted if unbounded)."""
+    """Scene points [..., 3] -> field coordinates in [0, 1]^3 (contracted if unbounded,
+    perspective-warped if forward-facing; outside points are clipped by the grid)."""
     low, high = self.bounds
+    if self.capacity.perspective_warp:
+      return self.scene.perspective(points)
     if not self.capacity.contract:
       return (points - low) / (high - low)
     centre, half_extent = (low + high) / 2, (high - low) / 2
@@ -125,7 +128,10 @@ class NerfModel:
 
   @property
   def spacing_scale(self) -> float:
-    """Distance at which mip-NeRF 360 spacing switches from linear to inverse distance."""
+    """Distance at which mip-NeRF 360 spacing switches from linear to inverse distance (the
+    near plane of forward-facing scenes: they are sampled evenly in disparity, as in NDC)."""
+    if self.capacity.perspective_warp:
+      return self.scene.near
     return 0.5 * self.scene.extent
 
 
@@ -349,7 +355,7 @@ def _proposal_samples(model, variables, rays, key, training, ray_range, finish):
   t_near, t_far = ray_range
   finished = (lambda edges: _finish_edges(model, edges)) if finish else (lambda edges: edges)
   keys = jax.random.split(key, len(model.proposal_fields) + 1)
-  if capacity.contract:
+  if capacity.contract or capacity.perspective_warp:
     edges = sampling.spaced_edges(keys[0], t_near, t_far, capacity.proposal_samples[0], training,
                                   model.spacing_scale)
   else:

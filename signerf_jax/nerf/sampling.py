@@ -143,6 +143,20 @@ def contract(points):
   return jnp.where(norm <= 1.0, points, points * scale)
 
 
+def perspective(offsets):
+  """NDC's warp of forward-facing scenes: (x / depth, y / depth, 1 / depth) with depth along -z.
+  A grid over these coordinates spends the same cells on what a pixel covers at every depth, as
+  the images do (`capacity.PerspectiveWarp`).
+
+  Args:
+    offsets: [..., 3] points in a camera's frame (it looks down -z).
+  Returns:
+    [..., 3]; points at or behind the camera plane map to depth 1e-6 (far outside the grid).
+  """
+  depth = jnp.maximum(-offsets[..., 2:], 1e-6)
+  return jnp.concatenate([offsets[..., :2] / depth, 1.0 / depth], axis=-1)
+
+
 def midpoints(edges):
   """[..., N + 1] edges -> [..., N] interval centres."""
   return 0.5 * (edges[..., 1:] + edges[..., :-1])

@@ -10,6 +10,7 @@ import trimesh
 from signerf_jax.data import synthetic
 from signerf_jax.default_model import appearance, captions, objects, samples
 from signerf_jax.geometry import reference_cameras
+from signerf_jax.metrics import colors
 
 
 @pytest.mark.parametrize("kind_name", ["cube", "torus"])
@@ -62,8 +63,8 @@ def test_accent_covers_a_minority_of_the_surface(pattern, fraction):
 
 
 def test_accent_keeps_the_base_hue():
-  for name, (base, accent) in appearance.PALETTE.items():
-    if name in appearance.ACHROMATIC_COLORS:
+  for name, (base, accent) in colors.PALETTE.items():
+    if name in colors.ACHROMATIC_COLORS:
       assert np.ptp(base) < 0.03 and np.ptp(accent) < 0.03
       continue
     assert colorsys.rgb_to_hsv(*accent)[0] == pytest.approx(colorsys.rgb_to_hsv(*base)[0], abs=0.01)
@@ -72,9 +73,9 @@ def test_accent_keeps_the_base_hue():
 def test_dominant_color_is_recovered_from_shaded_renders(tiny_sampling):
   settings = dataclasses.replace(tiny_sampling, reference_view_probability=1.0)
   rng = np.random.default_rng(2)
-  for color in appearance.COLORS:
+  for color in colors.COLORS:
     for pattern in appearance.PATTERNS:
       sample = samples.make_sample(rng, settings, captions.CaptionSettings(), sheet=False,
                                    attributes=captions.Attributes("cube", color, pattern))
       pixels = sample.views["rgb"][0][sample.views["silhouette"][0] > 0] / 255.0
-      assert appearance.dominant_color(pixels) == color, (color, pattern)
+      assert colors.dominant_color(pixels) == color, (color, pattern)

@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import appearance, captions, objects
-from signerf_jax.diffusion import word_tokenizer
+from signerf_jax.metrics import colors
 
 ALL_FORMS = [(kind, noun, color, pattern, phrase)
              for kind, nouns in objects.KIND_NOUNS.items() for noun in nouns
-             for color in (None, *appearance.COLORS) for pattern in (None, *appearance.PATTERNS)
+             for color in (None, *colors.COLORS) for pattern in (None, *appearance.PATTERNS)
              for phrase in (False, True)]
 
 

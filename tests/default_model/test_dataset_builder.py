@@ -6,10 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from signerf_jax.default_model import appearance, batches, captions, dataset_builder
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax.clip import tokenizer as tokenizer_lib
+from signerf_jax.default_model import batches, captions, dataset_builder
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import colors
 
 
 def tiny_settings(directory, **changes) -> dataset_builder.DataSettings:
@@ -62,7 +63,7 @@ def test_eval_split_is_balanced_and_held_out(built, tiny_sampling):
   directory, _ = built
   [path] = dataset_builder.shard_paths(directory, "eval", "singles")[:1]
   shard = dataset_builder.read_shard(path)
-  assert list(shard["color"]) == list(appearance.COLORS[:2])
+  assert list(shard["color"]) == list(colors.COLORS[:2])
   kinds = [kind.name for kind in tiny_sampling.catalogue()]
   assert list(shard["kind"]) == kinds[:2]
   train = dataset_builder.read_shard(dataset_builder.shard_paths(directory, "train", "singles")[0])

@@ -39,7 +39,7 @@ def test_diffusers_and_transformers_build_the_same_parameters(default_components
   tensor name and shape of the reference models is what our loaders expect."""
   diffusers = pytest.importorskip("diffusers")
   transformers = pytest.importorskip("transformers")
-  from signerf_jax.diffusion import clip_text  # pylint: disable=g-import-not-at-top
+  from signerf_jax.clip import text as clip_text  # pylint: disable=g-import-not-at-top
   architecture = model.Architecture()
   references = {
       "unet": (diffusers.UNet2DConditionModel, architecture.unet_config(),

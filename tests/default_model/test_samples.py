@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from signerf_jax import camera as camera_lib
-from signerf_jax.default_model import appearance, captions, objects, samples
+from signerf_jax.default_model import captions, objects, samples
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import colors
 
 CAPTIONS = captions.CaptionSettings()
 
@@ -41,10 +42,10 @@ def test_the_tiles_of_a_sheet_share_one_appearance(tiny_sampling, color):
   means = []
   for rgb, silhouette in zip(views["rgb"], views["silhouette"]):
     pixels = rgb[silhouette > 0] / 255.0
-    assert appearance.dominant_color(pixels) == color
+    assert colors.dominant_color(pixels) == color
     means.append(pixels.mean(0))
   means = np.array(means)
-  if color not in appearance.ACHROMATIC_COLORS:
+  if color not in colors.ACHROMATIC_COLORS:
     # Lambert shading does not depend on the viewer: only which part is visible changes.
     chromaticity = means / means.sum(-1, keepdims=True)
     assert np.ptp(chromaticity, axis=0).max() < 0.08
@@ -132,7 +133,7 @@ def test_catalogue_uses_the_shared_meshes(monkeypatch, shared_data):
   assert catalogue["cow"].source.endswith("spot_triangulated.obj")
   sample = make(settings, 1, True, captions.Attributes("cow", "red", "plain"))
   for rgb, silhouette in zip(sample.views["rgb"], sample.views["silhouette"]):
-    assert appearance.dominant_color(rgb[silhouette > 0] / 255.0) == "red"
+    assert colors.dominant_color(rgb[silhouette > 0] / 255.0) == "red"
 
 
 @pytest.mark.parametrize("field, value", [("ground_half_size_range", (0.3, 0.5)),

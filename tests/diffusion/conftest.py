@@ -8,26 +8,8 @@ convolutions; a wrong mapping must not hide behind zeros), saves it with
 
 from __future__ import annotations
 
-import sys
-
 import jax.numpy as jnp
 import pytest
-
-
-def _hide_unloadable_torchvision() -> None:
-  """transformers (imported by diffusers) imports torchvision whenever it is installed; a
-  torchvision wheel built for another torch (e.g. the CUDA one from PyPI next to the CPU torch)
-  then fails to load and breaks every diffusers import. None of these tests needs torchvision, so
-  a broken one is made to look absent."""
-  try:
-    import torchvision  # pylint: disable=g-import-not-at-top,unused-import
-  except (ImportError, RuntimeError, OSError):
-    for name in [name for name in sys.modules if name.split(".")[0] == "torchvision"]:
-      del sys.modules[name]
-    sys.modules["torchvision"] = None  # find_spec() now reports it absent.
-
-
-_hide_unloadable_torchvision()
 
 TINY_BACKBONE = dict(block_out_channels=(32, 64), cross_attention_dim=32, norm_num_groups=8,
                      down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"))

@@ -14,9 +14,9 @@ import jax
 import numpy as np
 import pytest
 
+from signerf_jax.clip import tokenizer as tokenizer_lib
 from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.diffusion import sampler
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
 from signerf_jax.errors import InputError
 
 torch = pytest.importorskip("torch")

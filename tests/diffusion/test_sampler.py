@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from signerf_jax.diffusion import clip_text, model_configs, sampler, schedulers, weights
+from signerf_jax.clip import text as clip_text
+from signerf_jax.diffusion import model_configs, sampler, schedulers, weights
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 from signerf_jax.diffusion.vae import AutoencoderKL

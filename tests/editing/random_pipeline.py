@@ -16,11 +16,11 @@ import numpy as np
 from safetensors.numpy import save_file
 
 from signerf_jax import files
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import model as model_lib
-from signerf_jax.diffusion import clip_text
 from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.diffusion import weights
-from signerf_jax.diffusion import word_tokenizer
 
 # Two denoising steps with guidance: every code path of the sampler, at little cost.
 TINY_OPTIONS = pipeline_lib.GenerationOptions(num_inference_steps=2, guidance_scale=3.0)

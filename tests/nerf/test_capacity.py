@@ -1,5 +1,7 @@
 import dataclasses
+import json
 
+import numpy as np
 import pytest
 
 from signerf_jax.errors import InputError
@@ -33,11 +35,21 @@ def test_table_never_exceeds_the_finest_levels_vertices_and_grows_with_resolutio
     assert layout.num_rows < 16 * 2**19  # far below the fixed large configuration
 
 
+# A forward-facing scene seen through image-plane ranges of 1.6 x 1.2 (tangent units).
+FORWARD_FACING = dataclasses.replace(
+    LEGO_100, kind="forward_facing", background_color=None,
+    perspective=capacity.PerspectiveWarp((0.0, 0.0, 1.0), ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
+                                                           (0.0, 0.0, 1.0)),
+                                         (-0.8, -0.6, 0.5), (0.8, 0.6, 4.5)))
+
+
 @pytest.mark.parametrize("kind, contract", [("forward_facing", False), ("unbounded", True)])
 def test_real_scenes_use_proposals_and_contract_only_when_unbounded(kind, contract):
-  scene = dataclasses.replace(LEGO_100, kind=kind, background_color=None)
+  scene = (FORWARD_FACING if kind == "forward_facing"
+           else dataclasses.replace(LEGO_100, kind=kind, background_color=None))
   derived = capacity.derive_capacity(scene)
   assert derived.sampler == "proposal" and derived.contract == contract
+  assert derived.perspective_warp == (kind == "forward_facing")
   assert derived.background == "last_sample" and derived.appearance_embedding
   if contract:  # the inner box takes half of the contracted grid
     assert derived.finest_resolution >= 2 * capacity.derive_capacity(LEGO_100).finest_resolution - 8
@@ -56,6 +68,8 @@ def test_json_round_trip():
   assert capacity.Capacity.from_json(dataclasses.asdict(derived)) == derived
   assert capacity.SceneInfo.from_json(dataclasses.asdict(LEGO_100)) == dataclasses.replace(
       LEGO_100, bounds=((-1.0,) * 3, (1.0,) * 3), background_color=(1, 1, 1))
+  as_json = json.loads(json.dumps(dataclasses.asdict(FORWARD_FACING)))
+  assert capacity.SceneInfo.from_json(as_json).perspective == FORWARD_FACING.perspective
 
 
 @pytest.mark.shared_data
@@ -71,7 +85,7 @@ def test_capacity_of_the_benchmark_scenes(shared_data):
                                                       downscale=16))
   derived = capacity.derive_capacity(fern)
   assert fern.kind == "forward_facing" and derived.sampler == "proposal"
-  assert not derived.contract and derived.appearance_embedding
+  assert not derived.contract and derived.appearance_embedding and derived.perspective_warp
 
 
 def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
@@ -86,3 +100,52 @@ def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
   assert "near-camera gradient scaling" in line and "contracted unbounded space" in line
   assert "proposal sampling" in line and "appearance codes" in line
   assert "occupancy-grid sampling" in capacity.describe(synthetic)
+
+
+def test_forward_facing_grid_resolves_one_pixel_angle_per_finest_cell():
+  derived = capacity.derive_capacity(FORWARD_FACING)
+  focal = LEGO_100.camera_distance / LEGO_100.pixel_footprint  # 138.9 px
+  assert 1.6 * focal <= derived.finest_resolution <= 1.6 * focal + 8
+  assert "NDC" in capacity.describe(derived)
+  # Runs recorded before the warp existed (no perspective) keep their box.
+  legacy = capacity.derive_capacity(dataclasses.replace(FORWARD_FACING, perspective=None))
+  assert not legacy.perspective_warp
+
+
+@pytest.mark.parametrize("yaw_degrees", [0.0, 90.0, 150.0])
+def test_perspective_warp_spans_the_cameras_field_of_view_in_any_orientation(yaw_degrees):
+  from signerf_jax import camera as camera_lib  # pylint: disable=g-import-not-at-top
+
+  yaw = np.radians(yaw_degrees)
+  rotation = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0],
+                       [-np.sin(yaw), 0.0, np.cos(yaw)]])
+  position = np.array([0.3, -0.2, 0.5])
+  pose = np.concatenate([rotation, position[:, None]], axis=1)[None]
+  cameras = camera_lib.Cameras.create(pose, 50.0, width=100, height=60)
+  warp = capacity.PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)
+  np.testing.assert_allclose(warp.centre, position, atol=1e-6)
+  np.testing.assert_allclose(warp.low[:2], (-1.0, -0.6), rtol=1e-5)  # half sizes / focal
+  np.testing.assert_allclose(warp.high[:2], (1.0, 0.6), rtol=1e-5)
+  # Disparity from the far centre ray's depth to the near corner ray's (depth = distance * cos).
+  corner_cos = 1.0 / np.sqrt(1.0 + 1.0**2 + 0.6**2)
+  np.testing.assert_allclose((warp.low[2], warp.high[2]), (1 / 4.0, 1 / (0.5 * corner_cos)),
+                             rtol=1e-5)
+  # What the camera sees between near and far lands inside the unit cube; the optical axis
+  # through its centre.
+  seen = np.array([[0.0, 0.0, -0.5], [0.3, -0.1, -2.0], [-3.9, 0.0, -3.95]])
+  coordinates = np.asarray(warp(seen @ rotation.T + position))
+  assert np.all((coordinates >= 0) & (coordinates <= 1)), coordinates
+  np.testing.assert_allclose(coordinates[:2, :2].mean(), 0.5, atol=0.1)
+  assert capacity.PerspectiveWarp.from_json(json.loads(json.dumps(
+      dataclasses.asdict(warp)))) == warp
+
+
+def test_perspective_warp_of_cameras_looking_all_around_is_an_input_error():
+  from signerf_jax import camera as camera_lib  # pylint: disable=g-import-not-at-top
+
+  angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+  eyes = np.stack([np.cos(angles), np.sin(angles), np.zeros(8)], -1).astype(np.float32)
+  cameras = camera_lib.Cameras.create(np.asarray(camera_lib.look_at(eyes, np.zeros(3, np.float32))),
+                                      50.0, width=100, height=60)
+  with pytest.raises(InputError, match="not a forward-facing capture"):
+    capacity.PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)

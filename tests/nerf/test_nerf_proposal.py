@@ -13,12 +13,15 @@ from signerf_jax.nerf import capacity, evaluate, model as nerf_model, train
 
 @pytest.mark.parametrize("kind", ["unbounded", "forward_facing"])
 def test_proposal_sampler_trains_without_recompiling(sphere, kind):
-  dataset = dataclasses.replace(sphere, scene_kind=kind, background_color=None)
+  # Forward-facing: the five ring cameras within 45 degrees of the first one's direction.
+  views = sphere if kind == "unbounded" else sphere.subset([14, 15, 0, 1, 2])
+  dataset = dataclasses.replace(views, scene_kind=kind, background_color=None)
   scene = capacity.SceneInfo.from_dataset(dataset)
   derived = capacity.derive_capacity(scene, samples_per_batch=4096)
   model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
                                                           samples_per_ray=8, mlp_width=32))
   assert model.capacity.sampler == "proposal" and model.capacity.contract == (kind == "unbounded")
+  assert model.capacity.perspective_warp == (kind == "forward_facing")
   trainer = train.make_trainer(dataset, model=model, config=SMALL_CONFIG)
   initial = jax.device_get(trainer.state.variables["params"])
   before, _ = evaluate.evaluate(model, trainer.state.variables, dataset.subset([0]))

@@ -93,3 +93,17 @@ def test_contraction_is_continuous_with_a_finite_jacobian_and_identity_inside(di
   np.testing.assert_allclose(jacobian(inside), jacobian(outside), atol=2e-3)
   for scale in (2.0, 1e3, 1e9):
     assert np.all(np.isfinite(jacobian(jnp.asarray(scale * direction, jnp.float32))))
+
+
+def test_perspective_divides_by_depth_along_minus_z():
+  offsets = jnp.array([[1.0, 2.0, -4.0], [0.0, 0.0, -0.5], [3.0, -1.0, 2.0]])
+  warped = np.asarray(sampling.perspective(offsets))
+  np.testing.assert_allclose(warped[:2], [[0.25, 0.5, 0.25], [0.0, 0.0, 2.0]], rtol=1e-6)
+  assert np.all(np.isfinite(warped[2]))  # behind the camera: finite, far outside any grid
+
+
+@pytest.mark.parametrize("offset", [(0.3, -0.2, -0.5), (1e-3, 0.0, -1e-3), (5.0, 5.0, -1e4),
+                                    (0.0, 0.0, 0.0), (1.0, 1.0, 2.0)])
+def test_perspective_has_finite_gradients(offset):
+  jacobian = jax.jacfwd(sampling.perspective)(jnp.asarray(offset, jnp.float32))
+  assert np.all(np.isfinite(jacobian))

@@ -82,14 +82,12 @@ def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
   how.add_argument("--views_per_device", type=int, help="views inpainted per device at once")
   how.add_argument("--redo", action="append", default=[], metavar="STAGE",
                    help="run this stage (and those after it) again; repeatable")
-  add_gin_arguments(parser)
+  add_common_arguments(parser)
 
 
-def add_gin_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--gin_file", action="append", default=[],
-                      help="gin file (path or name in gin_configs/); repeatable")
-  parser.add_argument("--gin_param", action="append", default=[],
-                      help="gin binding such as 'UpdateConfig.views_per_device = 8'; repeatable")
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+  """--gin_file, --gin_param and --quiet, which every edit command and the demo take."""
+  configs.add_gin_arguments(parser, "UpdateConfig.views_per_device = 8")
   parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 

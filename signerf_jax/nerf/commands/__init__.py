@@ -37,13 +37,6 @@ class DataConfig:
   scene_radius: float | None = None
 
 
-def add_gin_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--gin_file", action="append", default=[],
-                      help="gin file (path or name in gin_configs/); repeatable")
-  parser.add_argument("--gin_param", action="append", default=[],
-                      help="gin binding such as 'TrainConfig.steps = 2000'; repeatable")
-
-
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
   """Flags for every `DataConfig` field (default: the gin-configured value)."""
   parser.add_argument("--downscale", type=int, default=None, help="integer image downscale")

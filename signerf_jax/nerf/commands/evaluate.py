@@ -16,13 +16,16 @@ from signerf_jax.nerf.commands import load_recorded_dataset
 
 EVAL_FILE = "eval.json"
 RENDERS_FOLDER = "eval"
+RUN_HELP = "run directory written by `signerf train`"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  target = parser.add_mutually_exclusive_group(required=True)
-  target.add_argument("--run", help="run directory written by `signerf train`")
-  target.add_argument("--edit", help="edit directory written by `signerf edit`: evaluate the "
-                      "edit instead (background preservation, consistency, CLIP)")
+  parser.add_argument("--run", required=True, help=RUN_HELP)
+  add_options(parser)
+
+
+def add_options(parser: argparse.ArgumentParser) -> None:
+  """The options besides the run directory (`signerf eval` adds --edit beside --run)."""
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
                       help="views to evaluate; eval (the held-out views) also reports the "
                       "training views' PSNR and the gap")
@@ -56,8 +59,5 @@ def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights:
 
 
 def run(args: argparse.Namespace) -> int:
-  if args.edit is not None:
-    from signerf_jax.editing import commands  # pylint: disable=g-import-not-at-top
-    return commands.run_evaluation(args.edit)
   print(json.dumps(evaluate_run(args.run, args.split, args.lpips, args.chunk_size)))
   return 0

@@ -11,7 +11,7 @@ from signerf_jax import configs
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import load_dataset
 from signerf_jax.nerf import capacity, checkpoint, train
-from signerf_jax.nerf.commands import add_data_arguments, add_gin_arguments, data_options
+from signerf_jax.nerf.commands import add_data_arguments, data_options
 from signerf_jax.nerf.commands import evaluate as evaluate_command
 
 
@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--skip_eval", action="store_true",
                       help="do not evaluate on the held-out views after training")
   add_data_arguments(parser)
-  add_gin_arguments(parser)
+  configs.add_gin_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:

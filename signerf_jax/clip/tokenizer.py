@@ -2,7 +2,7 @@
 
 Every tokenizer satisfies the `Tokenizer` protocol (`tokenize(texts) -> [B, max_length] int32`),
 so the CLIP BPE tokenizer of Stable Diffusion checkpoints and simpler ones (e.g. a word-level
-vocabulary for small models) are interchangeable in `clip_text.encode_prompt`.
+vocabulary for small models) are interchangeable in `clip.text.encode_prompt`.
 
 `CLIPTokenizer` reproduces transformers' `CLIPTokenizer` from a checkpoint's `vocab.json` +
 `merges.txt` (or the same vocabulary and merges in `tokenizer.json`). transformers 5 only has
@@ -36,7 +36,8 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.diffusion import word_tokenizer
+from signerf_jax.clip import token_ids
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.errors import InputError
 
 END_OF_WORD = "</w>"
@@ -252,13 +253,8 @@ class CLIPTokenizer:
 
   def tokenize(self, texts: Sequence[str]) -> np.ndarray:
     """[B, max_length] int32: `bos, ids[:max_length - 2], eos, pad, ...` per text."""
-    if isinstance(texts, str):
-      raise TypeError("tokenize takes a sequence of texts; wrap a single prompt in a list")
-    result = np.full((len(texts), self.max_length), self.pad_id, np.int32)
-    for row, text in enumerate(texts):
-      ids = [self.bos_id, *self.encode(text)[:self.max_length - 2], self.eos_id]
-      result[row, :len(ids)] = ids
-    return result
+    return token_ids.framed_ids(texts, self.encode, self.max_length, self.bos_id, self.eos_id,
+                                self.pad_id)
 
 
 def _split_special_tokens(text: str, special_tokens: Sequence[str]) -> list[tuple[str, bool]]:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import flax.linen as nn
@@ -24,15 +23,9 @@ import numpy as np
 from flax import struct
 from flax import traverse_util
 
-from signerf_jax import files
-from signerf_jax.diffusion import safetensors_io
-from signerf_jax.diffusion.tokenizer import Tokenizer
-from signerf_jax.errors import InputError
+from signerf_jax.clip import transformer
+from signerf_jax.clip.tokenizer import Tokenizer
 
-ACTIVATIONS = {
-    "quick_gelu": lambda x: x * jax.nn.sigmoid(1.702 * x),  # OpenAI CLIP (SD 1.x, SDXL 1st).
-    "gelu": functools.partial(jax.nn.gelu, approximate=False),  # OpenCLIP (SD 2.x, SDXL 2nd).
-}
 # transformers checkpoints of CLIPTextModelWithProjection (and older CLIPTextModel ones) nest the
 # transformer under this prefix; transformers >= 5 saves CLIPTextModel without it.
 TEXT_MODEL_PREFIX = "text_model."
@@ -71,57 +64,12 @@ class CLIPTextConfig:
     names = {field.name for field in dataclasses.fields(cls)} - {"with_projection"}
     result = cls(**{name: config[name] for name in names if name in config},
                  with_projection=with_projection)
-    if result.hidden_act not in ACTIVATIONS:
-      raise InputError(f"hidden_act {result.hidden_act!r} is not implemented (supported: "
-                       f"{sorted(ACTIVATIONS)})", source, "hidden_act")
-    if result.hidden_size % result.num_attention_heads:
-      raise InputError(f"hidden_size {result.hidden_size} is not divisible by "
-                       f"num_attention_heads {result.num_attention_heads}", source, "hidden_size")
+    transformer.check_config(result, source)
     return result
 
 
 # ----------------------------------------------------------------------------------------------
 # Model. Submodule names follow transformers' so that the weight mapping is mechanical.
-
-
-def layer_norm(config: CLIPTextConfig, name: str) -> nn.LayerNorm:
-  # Two-pass variance as torch computes it: E[x²] - E[x]² cancels badly on CLIP's large
-  # activations.
-  return nn.LayerNorm(epsilon=config.layer_norm_eps, use_fast_variance=False, name=name)
-
-
-class CLIPAttention(nn.Module):
-  config: CLIPTextConfig
-
-  @nn.compact
-  def __call__(self, hidden: jax.Array) -> jax.Array:
-    """[B, L, D] -> [B, L, D]; token i attends to tokens 0..i."""
-    heads = self.config.num_attention_heads
-    split = lambda x: x.reshape(*x.shape[:-1], heads, x.shape[-1] // heads)
-    query, key, value = (split(nn.Dense(self.config.hidden_size, name=name)(hidden))
-                         for name in ("q_proj", "k_proj", "v_proj"))
-    attended = jax.nn.dot_product_attention(query, key, value, is_causal=True)
-    return nn.Dense(self.config.hidden_size, name="out_proj")(attended.reshape(hidden.shape))
-
-
-class CLIPMLP(nn.Module):
-  config: CLIPTextConfig
-
-  @nn.compact
-  def __call__(self, hidden: jax.Array) -> jax.Array:
-    hidden = nn.Dense(self.config.intermediate_size, name="fc1")(hidden)
-    hidden = ACTIVATIONS[self.config.hidden_act](hidden)
-    return nn.Dense(self.config.hidden_size, name="fc2")(hidden)
-
-
-class CLIPEncoderLayer(nn.Module):
-  config: CLIPTextConfig
-
-  @nn.compact
-  def __call__(self, hidden: jax.Array) -> jax.Array:
-    norm = functools.partial(layer_norm, self.config)
-    hidden = hidden + CLIPAttention(self.config, name="self_attn")(norm(name="layer_norm1")(hidden))
-    return hidden + CLIPMLP(self.config, name="mlp")(norm(name="layer_norm2")(hidden))
 
 
 class CLIPTextEmbeddings(nn.Module):
@@ -144,7 +92,8 @@ class CLIPEncoder(nn.Module):
     """All hidden states: the input, then each layer's output."""
     states = [hidden]
     for index in range(self.config.num_hidden_layers):
-      states.append(CLIPEncoderLayer(self.config, name=f"layers_{index}")(states[-1]))
+      states.append(transformer.CLIPEncoderLayer(self.config, causal=True,
+                                                 name=f"layers_{index}")(states[-1]))
     return tuple(states)
 
 
@@ -180,7 +129,7 @@ class CLIPTextTransformer(nn.Module):
                        f"{config.max_position_embeddings}")
     hidden_states = CLIPEncoder(config, name="encoder")(
         CLIPTextEmbeddings(config, name="embeddings")(input_ids))
-    last = layer_norm(config, name="final_layer_norm")(hidden_states[-1])
+    last = transformer.layer_norm(config, name="final_layer_norm")(hidden_states[-1])
     if config.eos_token_id == LEGACY_EOS_TOKEN_ID:
       eos_position = jnp.argmax(input_ids, axis=-1)
     else:  # The first eos: the pad token may equal eos.
@@ -206,44 +155,17 @@ def encode(config: CLIPTextConfig, params: Any, input_ids: jax.Array) -> CLIPTex
 def expected_shapes(config: CLIPTextConfig, prefix: str = TEXT_MODEL_PREFIX
                     ) -> dict[str, tuple[int, ...]]:
   """transformers tensor name -> PyTorch shape, for every weight the config needs."""
-  width, inner = config.hidden_size, config.intermediate_size
+  width = config.hidden_size
   shapes = {
       f"{prefix}embeddings.token_embedding.weight": (config.vocab_size, width),
       f"{prefix}embeddings.position_embedding.weight": (config.max_position_embeddings, width),
       f"{prefix}final_layer_norm.weight": (width,),
       f"{prefix}final_layer_norm.bias": (width,),
   }
-  for index in range(config.num_hidden_layers):
-    layer = f"{prefix}encoder.layers.{index}."
-    for name in ("q_proj", "k_proj", "v_proj", "out_proj"):
-      shapes[f"{layer}self_attn.{name}.weight"] = (width, width)
-      shapes[f"{layer}self_attn.{name}.bias"] = (width,)
-    for name in ("layer_norm1", "layer_norm2"):
-      shapes[f"{layer}{name}.weight"] = (width,)
-      shapes[f"{layer}{name}.bias"] = (width,)
-    shapes[f"{layer}mlp.fc1.weight"] = (inner, width)
-    shapes[f"{layer}mlp.fc1.bias"] = (inner,)
-    shapes[f"{layer}mlp.fc2.weight"] = (width, inner)
-    shapes[f"{layer}mlp.fc2.bias"] = (width,)
+  shapes.update(transformer.encoder_shapes(config, prefix))
   if config.with_projection:
     shapes[PROJECTION_NAME] = (config.projection_dim, width)
   return shapes
-
-
-def _flax_path(name: str) -> tuple[tuple[str, ...], bool]:
-  """transformers name (without prefix) -> (Flax parameter path, transpose?)."""
-  parts = name.split(".")
-  module, leaf = parts[:-1], parts[-1]
-  if "layers" in module:  # encoder.layers.3 -> encoder/layers_3
-    position = module.index("layers")
-    module[position:position + 2] = [f"layers_{module[position + 1]}"]
-  if leaf == "bias":
-    return (*module, "bias"), False
-  if module[-1].endswith("embedding"):
-    return (*module, "embedding"), False
-  if "norm" in module[-1]:
-    return (*module, "scale"), False
-  return (*module, "kernel"), True  # torch Linear stores [out, in]; Flax Dense [in, out].
 
 
 def params_from_tensors(config: CLIPTextConfig, tensors: Mapping[str, np.ndarray],
@@ -256,16 +178,13 @@ def params_from_tensors(config: CLIPTextConfig, tensors: Mapping[str, np.ndarray
     source: the checkpoint, named in errors.
   """
   prefix = TEXT_MODEL_PREFIX if any(name.startswith(TEXT_MODEL_PREFIX) for name in tensors) else ""
-  shapes = expected_shapes(config, prefix)
-  # position_ids is a buffer (arange) that older checkpoints saved.
-  safetensors_io.check_tensors(shapes, tensors, source,
-                               ignore=(f"{prefix}embeddings.position_ids",))
-  flat = {}
-  for name in shapes:
-    path, transpose = _flax_path(name.removeprefix(prefix))
-    value = tensors[name]
-    flat[path] = jnp.asarray(value.T if transpose else value)
-  return traverse_util.unflatten_dict(flat)
+  return transformer.params_from_tensors(expected_shapes(config, prefix), tensors, prefix, source,
+                                        _to_flax)
+
+
+def _to_flax(name: str, value: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
+  path, transpose = transformer.flax_path(name)
+  return path, value.T if transpose else value
 
 
 def tensors_from_params(config: CLIPTextConfig, params: Any, prefix: str = ""
@@ -275,7 +194,7 @@ def tensors_from_params(config: CLIPTextConfig, params: Any, prefix: str = ""
   flat = traverse_util.flatten_dict(params)
   tensors = {}
   for name in expected_shapes(config, prefix):
-    path, transpose = _flax_path(name.removeprefix(prefix))
+    path, transpose = transformer.flax_path(name.removeprefix(prefix))
     value = np.asarray(flat[path])
     tensors[name] = np.ascontiguousarray(value.T if transpose else value)
   return tensors
@@ -301,15 +220,8 @@ def load_text_encoder(directory: str | os.PathLike, with_projection: bool | None
     with_projection: load as CLIPTextModelWithProjection; None decides from the config's
       `architectures`, or, when that is absent, from whether the weights hold a projection.
   """
-  directory = Path(directory)
-  config_path = directory / "config.json"
-  raw_config = files.read_json(config_path)
-  if not isinstance(raw_config, dict):
-    raise InputError("expected a JSON object", config_path)
-  tensors = safetensors_io.read_safetensors(safetensors_io.find_weight_files(directory))
-  if with_projection is None and "architectures" not in raw_config:
-    with_projection = PROJECTION_NAME in tensors
-  config = CLIPTextConfig.from_dict(raw_config, config_path, with_projection)
+  config, tensors = transformer.read_checkpoint(directory, CLIPTextConfig, PROJECTION_NAME,
+                                                with_projection)
   return TextEncoder(config, params_from_tensors(config, tensors, directory))
 
 

@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file, save_file
 
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax.clip import preprocessing as clip_preprocessing
+from signerf_jax.clip import similarity as clip_similarity
+from signerf_jax.clip import tokenizer as tokenizer_lib
+from signerf_jax.clip import vision as clip_vision
 from signerf_jax.errors import InputError
-from signerf_jax.metrics import clip_preprocessing, clip_similarity, clip_vision
 
 torch = pytest.importorskip("torch")
 transformers = pytest.importorskip("transformers")

@@ -5,11 +5,10 @@
 prepended to the patches, learned position embeddings, a LayerNorm before the encoder
 (transformers' `pre_layrnorm`, sic), pre-norm bidirectional self-attention layers, a LayerNorm on
 the class token's final state (`post_layernorm`, the pooled output) and an optional bias-free
-projection of it (`visual_projection`, giving `image_embeds`). The MLP, its activations and the
-LayerNorm flavour are the text tower's (`diffusion.clip_text`); attention differs only in being
-unmasked.
+projection of it (`visual_projection`, giving `image_embeds`). The encoder layers are the text
+tower's (`clip.transformer`) without the causal mask.
 
-Inputs are preprocessed pixels (`clip_preprocessing`), channels last: [B, S, S, 3] with S the
+Inputs are preprocessed pixels (`clip.preprocessing`), channels last: [B, S, S, 3] with S the
 config's image_size (position embeddings are not interpolated to other sizes).
 """
 
@@ -18,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from pathlib import Path
 from typing import Any, Mapping
 
 import flax.linen as nn
@@ -26,11 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from flax import traverse_util
 
-from signerf_jax import files
-from signerf_jax.diffusion import clip_text
-from signerf_jax.diffusion import safetensors_io
+from signerf_jax.clip import transformer
 from signerf_jax.errors import InputError
 
 # CLIPModel, CLIPVisionModelWithProjection and transformers 4's CLIPVisionModel checkpoints nest
@@ -72,12 +67,7 @@ class CLIPVisionConfig:
     if result.image_size % result.patch_size:
       raise InputError(f"image_size {result.image_size} is not a multiple of patch_size "
                        f"{result.patch_size}", source, "image_size")
-    if result.hidden_act not in clip_text.ACTIVATIONS:
-      raise InputError(f"hidden_act {result.hidden_act!r} is not implemented (supported: "
-                       f"{sorted(clip_text.ACTIVATIONS)})", source, "hidden_act")
-    if result.hidden_size % result.num_attention_heads:
-      raise InputError(f"hidden_size {result.hidden_size} is not divisible by "
-                       f"num_attention_heads {result.num_attention_heads}", source, "hidden_size")
+    transformer.check_config(result, source)
     return result
 
   @property
@@ -88,31 +78,6 @@ class CLIPVisionConfig:
 
 # ----------------------------------------------------------------------------------------------
 # Model. Submodule names follow transformers' so that the weight mapping is mechanical.
-
-
-class CLIPVisionAttention(nn.Module):
-  config: CLIPVisionConfig
-
-  @nn.compact
-  def __call__(self, hidden: jax.Array) -> jax.Array:
-    """[B, L, D] -> [B, L, D]; every token attends to every token."""
-    heads = self.config.num_attention_heads
-    split = lambda x: x.reshape(*x.shape[:-1], heads, x.shape[-1] // heads)
-    query, key, value = (split(nn.Dense(self.config.hidden_size, name=name)(hidden))
-                         for name in ("q_proj", "k_proj", "v_proj"))
-    attended = jax.nn.dot_product_attention(query, key, value)
-    return nn.Dense(self.config.hidden_size, name="out_proj")(attended.reshape(hidden.shape))
-
-
-class CLIPVisionEncoderLayer(nn.Module):
-  config: CLIPVisionConfig
-
-  @nn.compact
-  def __call__(self, hidden: jax.Array) -> jax.Array:
-    norm = functools.partial(clip_text.layer_norm, self.config)
-    hidden = hidden + CLIPVisionAttention(self.config, name="self_attn")(
-        norm(name="layer_norm1")(hidden))
-    return hidden + clip_text.CLIPMLP(self.config, name="mlp")(norm(name="layer_norm2")(hidden))
 
 
 class CLIPVisionEmbeddings(nn.Module):
@@ -163,10 +128,10 @@ class CLIPVisionTransformer(nn.Module):
       raise ValueError(f"expected pixel_values [B, {', '.join(map(str, expected))}], got "
                        f"{tuple(pixel_values.shape)}")
     hidden = CLIPVisionEmbeddings(config, name="embeddings")(pixel_values)
-    hidden = clip_text.layer_norm(config, name="pre_layrnorm")(hidden)
+    hidden = transformer.layer_norm(config, name="pre_layrnorm")(hidden)
     for index in range(config.num_hidden_layers):
-      hidden = CLIPVisionEncoderLayer(config, name=f"layers_{index}")(hidden)
-    pooled = clip_text.layer_norm(config, name="post_layernorm")(hidden[:, 0])
+      hidden = transformer.CLIPEncoderLayer(config, causal=False, name=f"layers_{index}")(hidden)
+    pooled = transformer.layer_norm(config, name="post_layernorm")(hidden[:, 0])
     image_embeds = None
     if config.with_projection:
       image_embeds = nn.Dense(config.projection_dim, use_bias=False,
@@ -197,26 +162,21 @@ def expected_shapes(config: CLIPVisionConfig, prefix: str = VISION_MODEL_PREFIX
   for name in ("pre_layrnorm", "post_layernorm"):
     shapes[f"{prefix}{name}.weight"] = (width,)
     shapes[f"{prefix}{name}.bias"] = (width,)
-  # The encoder layers are named and shaped as the text tower's.
-  text_layout = clip_text.CLIPTextConfig(
-      hidden_size=width, intermediate_size=config.intermediate_size,
-      num_hidden_layers=config.num_hidden_layers, num_attention_heads=config.num_attention_heads)
-  shapes.update({name: shape for name, shape in clip_text.expected_shapes(text_layout, prefix).items()
-                 if name.startswith(f"{prefix}encoder.")})
+  shapes.update(transformer.encoder_shapes(config, prefix))
   if config.with_projection:
     shapes[PROJECTION_NAME] = (config.projection_dim, width)
   return shapes
 
 
-def _flax_path(name: str) -> tuple[tuple[str, ...], Any]:
-  """transformers name (without prefix) -> (Flax path, torch -> Flax array transform)."""
+def _to_flax(name: str, value: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
+  """transformers name (without prefix) and torch array -> Flax path and array."""
   if name == "embeddings.class_embedding":
-    return ("embeddings", "class_embedding"), None
+    return ("embeddings", "class_embedding"), value
   if name == "embeddings.patch_embedding.weight":  # torch [D, C, P, P] -> Flax [P, P, C, D]
-    return ("embeddings", "patch_embedding", "kernel"), (2, 3, 1, 0)
+    return ("embeddings", "patch_embedding", "kernel"), np.transpose(value, (2, 3, 1, 0))
   # The encoder sits directly under the tower here: encoder.layers.3 -> layers_3.
-  path, transpose = clip_text._flax_path(name.removeprefix("encoder."))  # pylint: disable=protected-access
-  return path, ((1, 0) if transpose else None)
+  path, transpose = transformer.flax_path(name.removeprefix("encoder."))
+  return path, value.T if transpose else value
 
 
 def params_from_tensors(config: CLIPVisionConfig, tensors: Mapping[str, np.ndarray],
@@ -231,15 +191,8 @@ def params_from_tensors(config: CLIPVisionConfig, tensors: Mapping[str, np.ndarr
   """
   prefix = (VISION_MODEL_PREFIX if any(name.startswith(VISION_MODEL_PREFIX) for name in tensors)
             else "")
-  shapes = expected_shapes(config, prefix)
-  safetensors_io.check_tensors(shapes, tensors, source,
-                               ignore=(f"{prefix}embeddings.position_ids",))
-  flat = {}
-  for name in shapes:
-    path, axes = _flax_path(name.removeprefix(prefix))
-    value = tensors[name]
-    flat[path] = jnp.asarray(value if axes is None else np.transpose(value, axes))
-  return traverse_util.unflatten_dict(flat)
+  return transformer.params_from_tensors(expected_shapes(config, prefix), tensors, prefix, source,
+                                        _to_flax)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -262,13 +215,6 @@ def load_vision_encoder(directory: str | os.PathLike, with_projection: bool | No
     with_projection: load as CLIPVisionModelWithProjection; None decides from the config's
       `architectures`, or, when that is absent, from whether the weights hold a projection.
   """
-  directory = Path(directory)
-  config_path = directory / "config.json"
-  raw_config = files.read_json(config_path)
-  if not isinstance(raw_config, dict):
-    raise InputError("expected a JSON object", config_path)
-  tensors = safetensors_io.read_safetensors(safetensors_io.find_weight_files(directory))
-  if with_projection is None and "architectures" not in raw_config:
-    with_projection = PROJECTION_NAME in tensors
-  config = CLIPVisionConfig.from_dict(raw_config, config_path, with_projection)
+  config, tensors = transformer.read_checkpoint(directory, CLIPVisionConfig, PROJECTION_NAME,
+                                                with_projection)
   return VisionEncoder(config, params_from_tensors(config, tensors, directory))

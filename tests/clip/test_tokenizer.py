@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax.clip import tokenizer as tokenizer_lib
 from signerf_jax.errors import InputError
 
 TRAINING_TEXT = """a photo of an astronaut riding a horse on the moon, highly detailed, trending on

@@ -9,8 +9,8 @@ import pytest
 from safetensors import safe_open
 from safetensors.numpy import load_file, save_file
 
-from signerf_jax.diffusion import clip_text
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip import tokenizer as tokenizer_lib
 from signerf_jax.errors import InputError
 
 torch = pytest.importorskip("torch")

@@ -11,7 +11,7 @@ Saved in a checkpoint's `tokenizer/` folder (diffusers layout) as
   tokenizer_config.json   {"tokenizer_class": TOKENIZER_CLASS, "model_max_length", the special
                           tokens, "do_lower_case": true};
   special_tokens_map.json the special tokens.
-`signerf_jax.diffusion.tokenizer.load_tokenizer` recognises the folder by its tokenizer_class.
+`signerf_jax.clip.tokenizer.load_tokenizer` recognises the folder by its tokenizer_class.
 
 Special ids: pad 0, unk 1, bos 2, eos 3. The eos id is deliberately not 2: a CLIP text config
 with eos_token_id 2 selects transformers' legacy pooling at argmax(ids).
@@ -27,6 +27,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from signerf_jax import files
+from signerf_jax.clip import token_ids
 from signerf_jax.errors import InputError
 
 TOKENIZER_CLASS = "SignerfWordTokenizer"
@@ -116,13 +117,8 @@ class WordTokenizer:
 
   def tokenize(self, texts: Sequence[str]) -> np.ndarray:
     """[B, max_length] int32: `bos, ids[:max_length - 2], eos, pad, ...` per text."""
-    if isinstance(texts, str):
-      raise TypeError("tokenize takes a sequence of texts; wrap a single prompt in a list")
-    result = np.full((len(texts), self.max_length), self.pad_id, np.int32)
-    for row, text in enumerate(texts):
-      ids = [self.bos_id, *self.encode(text)[:self.max_length - 2], self.eos_id]
-      result[row, :len(ids)] = ids
-    return result
+    return token_ids.framed_ids(texts, self.encode, self.max_length, self.bos_id, self.eos_id,
+                                self.pad_id)
 
   def decode(self, ids: Sequence[int]) -> str:
     """The words of one id row, special tokens dropped, joined by spaces."""

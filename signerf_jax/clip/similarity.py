@@ -16,8 +16,8 @@ The model is a user-provided transformers CLIP checkpoint, loaded without PyTorc
     and optionally preprocessor_config.json; or
   * separate folders: a CLIPVisionModelWithProjection, a CLIPTextModelWithProjection and a
     tokenizer folder (the text folder by default).
-Images go through `clip_preprocessing` (bit-exact with transformers' PIL backend); the text tower
-and the tokenizer are `diffusion.clip_text` and `diffusion.tokenizer`.
+Images go through `clip.preprocessing` (bit-exact with transformers' PIL backend); the text tower
+and the tokenizer are `clip.text` and `clip.tokenizer`.
 
 InstructPix2Pix's own metric script resizes with torch's (non-antialiased) bicubic to a square
 instead of CLIP's shortest-side resize and centre crop, so its numbers are close to, not identical
@@ -36,12 +36,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.diffusion import clip_text
-from signerf_jax.diffusion import safetensors_io
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
+from signerf_jax import safetensors_io
+from signerf_jax.clip import preprocessing as clip_preprocessing
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip import tokenizer as tokenizer_lib
+from signerf_jax.clip import vision as clip_vision
 from signerf_jax.errors import InputError
-from signerf_jax.metrics import clip_preprocessing
-from signerf_jax.metrics import clip_vision
 
 PREPROCESSOR_CONFIG = "preprocessor_config.json"
 # CLIPModel tensors that neither tower uses.

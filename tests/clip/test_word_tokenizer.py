@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
+from signerf_jax.clip import text as clip_text
+from signerf_jax.clip import tokenizer as tokenizer_lib
+from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import captions
-from signerf_jax.diffusion import clip_text
-from signerf_jax.diffusion import tokenizer as tokenizer_lib
-from signerf_jax.diffusion import word_tokenizer
 from signerf_jax.errors import InputError
 
 
