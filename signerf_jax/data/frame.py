@@ -256,11 +256,7 @@ def forward_facing_frame(cameras: Cameras, depth_bounds: np.ndarray) -> SceneFra
   corner = np.array([cameras.width / 2, cameras.height / 2]) / focal
   frustum_points = _frustum_corners(camera_to_world, corner, depth_bounds).reshape(-1, 3)
   centre = camera_to_world[:, :, 3].mean(0)
-  back = camera_to_world[:, :, 2].sum(0)
-  back /= np.linalg.norm(back)
-  right = np.cross(camera_to_world[:, :, 1].sum(0), back)
-  right /= np.linalg.norm(right)
-  average_rotation = np.stack([right, np.cross(back, right), back], -1)
+  average_rotation = poses_lib.mean_rotation(camera_to_world)
   average_from_source = poses_lib.similarity(1.0, average_rotation.T,
                                              -average_rotation.T @ centre)
   points = poses_lib.transform_points(average_from_source, frustum_points)

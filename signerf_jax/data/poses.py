@@ -110,6 +110,26 @@ def unit_box_similarity(lower, upper) -> np.ndarray:
   return similarity(scale, translation=-scale * (lower + upper) / 2)
 
 
+def mean_rotation(camera_to_world) -> np.ndarray:
+  """[3, 3] camera-to-world rotation of the cameras' average orientation (LLFF's): its backward
+  axis is the mean of theirs, its right axis perpendicular to that and their mean up axis.
+
+  Args:
+    camera_to_world: [N, 3, 4] OpenGL poses.
+  Raises:
+    InputError when the cameras look in all directions (no mean viewing direction).
+  """
+  camera_to_world = np.asarray(camera_to_world, np.float64)
+  back = camera_to_world[:, :, 2].mean(0)
+  if np.linalg.norm(back) < 0.1:
+    raise InputError("the cameras look in all directions: not a forward-facing capture",
+                     field="scene_kind")
+  back /= np.linalg.norm(back)
+  right = np.cross(camera_to_world[:, :, 1].sum(0), back)
+  right /= np.linalg.norm(right)
+  return np.stack([right, np.cross(back, right), back], -1)
+
+
 def rotation_between(source, target) -> np.ndarray:
   """The [3, 3] rotation taking unit direction `source` onto unit direction `target`."""
   source = np.asarray(source, np.float64) / np.linalg.norm(source)

@@ -62,7 +62,8 @@ class ControlNet(nn.Module):
 
   @nn.compact
   def __call__(self, sample: jax.Array, timesteps: jax.Array, encoder_hidden_states: jax.Array,
-               controlnet_cond: jax.Array, conditioning_scale: float | jax.Array = 1.0, *,
+               controlnet_cond: jax.Array,
+               controlnet_conditioning_scale: float | jax.Array = 1.0, *,
                guess_mode: bool = False, text_embeds: jax.Array | None = None,
                time_ids: jax.Array | None = None) -> ControlNetResiduals:
     """Computes the residuals for the UNet.
@@ -74,7 +75,8 @@ class ControlNet(nn.Module):
       encoder_hidden_states: [B, S, cross_attention_dim].
       controlnet_cond: [B, H, W, conditioning_channels] NHWC conditioning image, RGB order
         (flipped here for checkpoints trained on BGR).
-      conditioning_scale: multiplies every residual; may be a traced scalar (no recompilation).
+      controlnet_conditioning_scale: multiplies every residual (diffusers' ControlNetModel calls
+        it conditioning_scale); may be a traced scalar (no recompilation).
       guess_mode: weight residuals from 0.1 (shallowest skip) to 1.0 (mid block) as diffusers
         does; a Python bool (it is part of the compiled program).
       text_embeds, time_ids: SDXL's text_time conditioning.
@@ -114,11 +116,13 @@ class ControlNet(nn.Module):
     mid = zero_conv(x, "controlnet_mid_block")
 
     if guess_mode and not config.global_pool_conditions:
-      scales = jnp.asarray(guess_mode_scales(len(down) + 1)) * conditioning_scale
+      residual_scales = (jnp.asarray(guess_mode_scales(len(down) + 1))
+                         * controlnet_conditioning_scale)
     else:
-      scales = jnp.broadcast_to(jnp.asarray(conditioning_scale, jnp.float32), (len(down) + 1,))
-    down = [residual * scales[index] for index, residual in enumerate(down)]
-    mid = mid * scales[-1]
+      residual_scales = jnp.broadcast_to(
+          jnp.asarray(controlnet_conditioning_scale, jnp.float32), (len(down) + 1,))
+    down = [residual * residual_scales[index] for index, residual in enumerate(down)]
+    mid = mid * residual_scales[-1]
     if config.global_pool_conditions:
       down = [jnp.mean(residual, axis=(1, 2), keepdims=True) for residual in down]
       mid = jnp.mean(mid, axis=(1, 2), keepdims=True)

@@ -303,7 +303,7 @@ def sampler_setup(pipeline: Pipeline, height: int, width: int,
       mask_blur=float(options.mask_blur) if options.paste_back else 0.0)
   guidance = sampler.Guidance(
       guidance_scale=jnp.float32(options.guidance_scale),
-      controlnet_scales=jnp.asarray(sampler.controlnet_scales(
+      controlnet_conditioning_scale=jnp.asarray(sampler.controlnet_conditioning_scale_per_step(
           schedule.num_steps, options.controlnet_conditioning_scale,
           options.control_guidance_start, options.control_guidance_end)))
   time_ids = jnp.asarray(sdxl_time_ids(height, width, options)) if pipeline.is_sdxl else None

@@ -10,9 +10,10 @@ carries only the latents and the solver state, so no per-step activation outlive
 What each step computes (B samples; "2B" under classifier-free guidance, unconditional half first):
   * UNet input: the scheduler-scaled latents, and for a 9-channel inpainting UNet the
     downsampled mask and the masked image's latents concatenated after them (channels 4 + 1 + 4);
-  * ControlNet residuals at scale `conditioning_scale * keep[step]` (diffusers' `controlnet_keep`
-    from control_guidance_start/end); in guess mode under guidance the ControlNet sees only the
-    conditional half and the unconditional half gets zero residuals, as diffusers does;
+  * ControlNet residuals at scale `controlnet_conditioning_scale * keep[step]` (diffusers'
+    `controlnet_keep` from control_guidance_start/end); in guess mode under guidance the
+    ControlNet sees only the conditional half and the unconditional half gets zero residuals, as
+    diffusers does;
   * guidance: eps_uncond + guidance_scale * (eps_cond - eps_uncond);
   * the scheduler step; for a 4-channel UNet, latent blending: outside the mask the latents are
     replaced by the original image's latents re-noised to the next step's level
@@ -154,11 +155,11 @@ class Guidance:
   Attributes:
     guidance_scale: () float32 classifier-free guidance weight (used when
       `SamplerSettings.classifier_free_guidance`).
-    controlnet_scales: [S] float32, the ControlNet conditioning scale of each step run, zero
-      where control guidance is off (`controlnet_scales(...)`).
+    controlnet_conditioning_scale: [S] float32, the ControlNet conditioning scale of each step
+      run, zero where control guidance is off (`controlnet_conditioning_scale_per_step`).
   """
   guidance_scale: jax.Array
-  controlnet_scales: jax.Array
+  controlnet_conditioning_scale: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,8 +183,9 @@ class SamplerSettings:
   mask_blur: float = 0.0
 
 
-def controlnet_scales(num_steps: int, conditioning_scale: float, guidance_start: float = 0.0,
-                      guidance_end: float = 1.0) -> np.ndarray:
+def controlnet_conditioning_scale_per_step(num_steps: int, controlnet_conditioning_scale: float,
+                                           guidance_start: float = 0.0,
+                                           guidance_end: float = 1.0) -> np.ndarray:
   """[num_steps] float32 ControlNet scale per step run, as diffusers' `controlnet_keep`.
 
   Step i (of the steps run, after strength truncation) is controlled unless
@@ -194,7 +196,7 @@ def controlnet_scales(num_steps: int, conditioning_scale: float, guidance_start:
                      f"{guidance_start} and end {guidance_end}", field="control_guidance_start")
   keep = [1.0 - float(i / num_steps < guidance_start or (i + 1) / num_steps > guidance_end)
           for i in range(num_steps)]
-  return (conditioning_scale * np.asarray(keep)).astype(np.float32)
+  return (controlnet_conditioning_scale * np.asarray(keep)).astype(np.float32)
 
 
 @functools.partial(jax.jit, static_argnames=("latent_shape", "num_steps"))
@@ -355,7 +357,7 @@ def _control_image(models: DiffusionModels, control: jax.Array) -> jax.Array:
 
 
 def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings: SamplerSettings,
-                   guidance_scale: jax.Array, controlnet_scale: jax.Array,
+                   guidance_scale: jax.Array, controlnet_conditioning_scale: jax.Array,
                    model_input: jax.Array, timestep: jax.Array) -> jax.Array:
   """The guided noise (or v) prediction for the scheduler-scaled latents [B, h, w, C]."""
   guided = settings.classifier_free_guidance
@@ -369,13 +371,13 @@ def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings:
       # The ControlNet sees only the conditional half; the unconditional half gets nothing.
       conditional = lambda x: None if x is None else x[model_input.shape[0]:]
       residuals = controlnet(model_input, timestep, conditional(constants.text_states),
-                             constants.control, controlnet_scale,
+                             constants.control, controlnet_conditioning_scale,
                              text_embeds=conditional(constants.text_embeds),
                              time_ids=conditional(constants.time_ids))
       residuals = jax.tree.map(lambda r: jnp.concatenate([jnp.zeros_like(r), r]), residuals)
     else:
       residuals = controlnet(batch_latents, timestep, constants.text_states,
-                             twice(constants.control), controlnet_scale,
+                             twice(constants.control), controlnet_conditioning_scale,
                              text_embeds=constants.text_embeds, time_ids=constants.time_ids)
   unet_input = batch_latents
   if models.inpainting_unet:
@@ -474,7 +476,7 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
     latents, solver_state = carry
     step_index, step_noise = step
     prediction = _predict_noise(models, constants, settings, guidance.guidance_scale,
-                                guidance.controlnet_scales[step_index],
+                                guidance.controlnet_conditioning_scale[step_index],
                                 schedule.scale_model_input(latents, step_index),
                                 schedule.timesteps[step_index])
     latents, solver_state = schedule.step(solver_state, step_index, prediction, latents,

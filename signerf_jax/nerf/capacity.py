@@ -25,6 +25,7 @@ import gin
 import numpy as np
 
 from signerf_jax import camera as camera_lib
+from signerf_jax.data import poses
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import sampling
 
@@ -63,14 +64,7 @@ class PerspectiveWarp:
     """The warp whose range holds what every camera sees from `near` to `far` (ray distances,
     scene units): the rays through each image's corners and centre, at both distances."""
     camera_to_world = np.asarray(cameras.camera_to_world, np.float64)
-    back = camera_to_world[:, :, 2].mean(0)
-    if np.linalg.norm(back) < 0.1:
-      raise InputError("the cameras look in all directions: not a forward-facing capture",
-                       field="scene_kind")
-    back /= np.linalg.norm(back)
-    right = np.cross(camera_to_world[:, :, 1].sum(0), back)
-    right /= np.linalg.norm(right)
-    rotation = np.stack([right, np.cross(back, right), back])
+    rotation = poses.mean_rotation(camera_to_world).T
     centre = camera_to_world[:, :, 3].mean(0)
     count = len(camera_to_world)
     pixel_x = np.array([0.0, cameras.width, 0.0, cameras.width, cameras.width / 2], np.float32)

@@ -32,7 +32,7 @@ def test_residuals_match_diffusers(reference_controlnets, reference_inputs, flax
     down, mid = model(**inputs, conditioning_scale=0.7, guess_mode=guess_mode, return_dict=False)
   module, params = load_controlnet(directory)
   apply = jax.jit(module.apply, static_argnames="guess_mode")
-  residuals = apply({"params": params}, **flax_inputs(inputs), conditioning_scale=0.7,
+  residuals = apply({"params": params}, **flax_inputs(inputs), controlnet_conditioning_scale=0.7,
                     guess_mode=guess_mode)
   assert len(residuals.down) == len(down)
   for ours, theirs in zip(residuals.down + (residuals.mid,), list(down) + [mid]):
@@ -41,7 +41,8 @@ def test_residuals_match_diffusers(reference_controlnets, reference_inputs, flax
     np.testing.assert_allclose(np.asarray(ours), nhwc(theirs), atol=TOLERANCE, rtol=0)
 
   # A new conditioning scale is a new value, not a new program.
-  apply({"params": params}, **flax_inputs(inputs), conditioning_scale=0.3, guess_mode=guess_mode)
+  apply({"params": params}, **flax_inputs(inputs), controlnet_conditioning_scale=0.3,
+        guess_mode=guess_mode)
   assert apply._cache_size() == 1  # pylint: disable=protected-access
 
 
@@ -62,7 +63,8 @@ def test_unet_with_controlnet_matches_diffusers(reference_unets, reference_contr
 
   @jax.jit
   def denoise(controlnet_params, unet_params, inputs):
-    residuals = controlnet.apply({"params": controlnet_params}, **inputs, conditioning_scale=0.8)
+    residuals = controlnet.apply({"params": controlnet_params}, **inputs,
+                                 controlnet_conditioning_scale=0.8)
     unet_inputs = {k: v for k, v in inputs.items() if k != "controlnet_cond"}
     return unet.apply({"params": unet_params}, **unet_inputs, control=residuals)
 

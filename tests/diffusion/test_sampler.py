@@ -64,7 +64,8 @@ def test_a_two_by_three_sheet_runs_and_memory_does_not_grow_with_the_steps():
     noise = sampler.draw_noise(jax.random.split(jax.random.key(0), 1),
                                (height // 4, width // 4, 4), num_steps)
     guidance = sampler.Guidance(jnp.float32(7.5),
-                                jnp.asarray(sampler.controlnet_scales(num_steps, 0.8)))
+                                jnp.asarray(sampler.controlnet_conditioning_scale_per_step(
+                                    num_steps, 0.8)))
     return models, schedule, prompt, None, inputs, noise, guidance
 
   compiled = {steps: sampler.sample.lower(*arguments(steps), settings=settings).compile()
@@ -97,15 +98,17 @@ def test_noise_of_a_sample_depends_only_on_its_key():
     (4, 0.25, 0.75, [0, 1, 1, 0]),
     (2, 0.0, 1.0, [1, 1]),
 ])
-def test_controlnet_scales_follow_diffusers_controlnet_keep(num_steps, start, end, expected):
-  np.testing.assert_array_equal(sampler.controlnet_scales(num_steps, 0.7, start, end),
-                                0.7 * np.asarray(expected, np.float32))
+def test_controlnet_scale_per_step_follows_diffusers_controlnet_keep(num_steps, start, end,
+                                                                    expected):
+  np.testing.assert_array_equal(
+      sampler.controlnet_conditioning_scale_per_step(num_steps, 0.7, start, end),
+      0.7 * np.asarray(expected, np.float32))
 
 
 @pytest.mark.parametrize("start, end", [(0.5, 0.5), (-0.1, 1.0), (0.0, 1.2)])
 def test_bad_control_guidance_is_an_input_error(start, end):
   with pytest.raises(InputError):
-    sampler.controlnet_scales(3, 1.0, start, end)
+    sampler.controlnet_conditioning_scale_per_step(3, 1.0, start, end)
 
 
 def test_mask_binarization_is_diffusers():
