@@ -251,7 +251,7 @@ class EvaluationConfig:
   """What `signerf eval --edit` measures and writes.
 
   Attributes:
-    clip_model: a transformers CLIP checkpoint (`metrics.clip_similarity`); "" skips CLIP.
+    clip_model: a transformers CLIP checkpoint (`clip.similarity`); "" skips CLIP.
     source_caption: CLIP's caption of the unedited scene.
     independent_views: how many edited views get an independent per-view edit for the
       consistency comparison (0 skips it).

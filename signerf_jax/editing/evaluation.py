@@ -8,7 +8,7 @@ similarity, and adherence to the prompt's colour and the proxy's shape.
   neighbouring views (`metrics.consistency`) of the original images, of the sheet-propagated edit
   and of independent per-view edits (each view inpainted on its own with the same prompt and
   seed, `independent_edits`), and their change relative to the original images.
-* CLIP text-image directional similarity (`metrics.clip_similarity`) of the image edit and of
+* CLIP text-image directional similarity (`clip.similarity`) of the image edit and of
   the NeRF renders, when CLIP weights are given.
 * Prompt colour adherence: the share of views whose edited region's dominant colour
   (`metrics.colors.dominant_color`) is the colour the prompt names (when it names one
