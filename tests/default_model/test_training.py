@@ -170,7 +170,7 @@ def test_masked_ground_weight_weights_only_masked_cells_without_object(
   assert loss(4.0, covered) == pytest.approx(loss(1.0, covered), rel=1e-6)
 
 
-@pytest.mark.parametrize("control_dropout", [0.0, 0.5, 1.0])
+@pytest.mark.parametrize("control_dropout", [0.0, 1.0])
 def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero(
     control_dropout, components, tiny_architecture, tiny_training_data):
   loss_fn, params, frozen, batch, _ = _diffusion_setup(
@@ -179,13 +179,12 @@ def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero
   # Zero convolutions made non-zero, so the ControlNet changes the UNet's output.
   params["controlnet"] = jax.tree.map(lambda value: value + 0.05, params["controlnet"])
   without = dict(params, controlnet=jax.tree.map(jnp.zeros_like, params["controlnet"]))
-  per_part = lambda params: jax.jit(lambda params: loss_fn(params, frozen, batch,
-                                                           jax.random.key(3))[1])(params)
+  per_part = jax.jit(lambda params: loss_fn(params, frozen, batch, jax.random.key(3))[1])
   with_control, zero_control = per_part(params), per_part(without)
   changed = [not np.isclose(with_control[name], zero_control[name], rtol=1e-6)
              for name in ("loss_sheets", "loss_singles")]
   # Dropout 1: no sample sees the ControlNet; 0: every sample does (both parts change).
-  assert {0.0: all(changed), 0.5: True, 1.0: not any(changed)}[control_dropout]
+  assert all(changed) if control_dropout == 0.0 else not any(changed)
 
 
 def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_training_data):
