@@ -177,9 +177,8 @@ def params_from_tensors(config: CLIPTextConfig, tensors: Mapping[str, np.ndarray
     tensors: checkpoint name -> array, with or without the `text_model.` prefix.
     source: the checkpoint, named in errors.
   """
-  prefix = TEXT_MODEL_PREFIX if any(name.startswith(TEXT_MODEL_PREFIX) for name in tensors) else ""
-  return transformer.params_from_tensors(expected_shapes(config, prefix), tensors, prefix, source,
-                                        _to_flax)
+  return transformer.params_from_tensors(functools.partial(expected_shapes, config), tensors,
+                                        TEXT_MODEL_PREFIX, source, _to_flax)
 
 
 def _to_flax(name: str, value: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:

@@ -126,19 +126,22 @@ def flax_path(name: str) -> tuple[tuple[str, ...], bool]:
   return (*module, "kernel"), True
 
 
-def params_from_tensors(shapes: Mapping[str, tuple[int, ...]], tensors: Mapping[str, np.ndarray],
-                        prefix: str, source: str | os.PathLike,
+def params_from_tensors(expected_shapes: Callable[[str], Mapping[str, tuple[int, ...]]],
+                        tensors: Mapping[str, np.ndarray], tower_prefix: str,
+                        source: str | os.PathLike,
                         convert: Callable[[str, np.ndarray], tuple[tuple[str, ...], np.ndarray]]
                         ) -> dict:
   """Flax params from a transformers state dict, after checking every name and shape.
 
   Args:
-    shapes: every tensor the tower needs (`{prefix}name` -> torch shape).
-    tensors: checkpoint name -> array.
-    prefix: the tower's prefix in `tensors` ("" when absent).
+    expected_shapes: prefix -> every tensor the tower needs (`{prefix}name` -> torch shape).
+    tensors: checkpoint name -> array, with or without `tower_prefix` (e.g. "text_model.").
+    tower_prefix: what checkpoints that nest the tower put before its names.
     source: the checkpoint, named in errors.
     convert: (name without prefix, torch array) -> (Flax path, Flax array).
   """
+  prefix = tower_prefix if any(name.startswith(tower_prefix) for name in tensors) else ""
+  shapes = expected_shapes(prefix)
   # position_ids is a buffer (arange) that older checkpoints saved.
   safetensors_io.check_tensors(shapes, tensors, source,
                                ignore=(f"{prefix}embeddings.position_ids",))

@@ -189,10 +189,8 @@ def params_from_tensors(config: CLIPVisionConfig, tensors: Mapping[str, np.ndarr
       vision tower's tensors: split a CLIPModel's state dict first).
     source: the checkpoint, named in errors.
   """
-  prefix = (VISION_MODEL_PREFIX if any(name.startswith(VISION_MODEL_PREFIX) for name in tensors)
-            else "")
-  return transformer.params_from_tensors(expected_shapes(config, prefix), tensors, prefix, source,
-                                        _to_flax)
+  return transformer.params_from_tensors(functools.partial(expected_shapes, config), tensors,
+                                        VISION_MODEL_PREFIX, source, _to_flax)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

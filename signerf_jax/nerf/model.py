@@ -118,9 +118,9 @@ class NerfModel:
   def to_unit_cube(self, points):
     """Scene points [..., 3] -> field coordinates in [0, 1]^3 (contracted if unbounded,
     perspective-warped if forward-facing; outside points are clipped by the grid)."""
-    low, high = self.bounds
     if self.capacity.perspective_warp:
       return self.scene.perspective(points)
+    low, high = self.bounds
     if not self.capacity.contract:
       return (points - low) / (high - low)
     centre, half_extent = (low + high) / 2, (high - low) / 2
