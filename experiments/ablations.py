@@ -21,7 +21,8 @@ changes one thing of it (values: `ablations.*` in that file):
 
 The synthetic scene (OUT/scene) and the original NeRF (OUT/original) are made once; every
 variant is an edit run in OUT/ABLATION/VARIANT reusing that NeRF, and variants that are the same
-edit (e.g. the baseline, listed by several ablations) run once (`editing.sweeps`). Reruns resume.
+edit (e.g. the baseline, listed by several ablations) run once
+(`editing.commands.sweeps`). Reruns resume.
 Quality comes from each edit's evaluation (background PSNR, consistency, prompt colour, proxy
 shape IoU), time is the edit's stages' wall time without the shared NeRF and the evaluation.
 
@@ -45,9 +46,10 @@ import gin
 import numpy as np
 
 from signerf_jax import configs, files
-from signerf_jax.editing import commands, demo, sweeps
+from signerf_jax.editing import commands, demo
+from signerf_jax.editing.commands import sweeps
 from signerf_jax.editing.config import PRIMITIVE_PREFIX
-from signerf_jax.editing.sweeps import Variant
+from signerf_jax.editing.commands.sweeps import Variant
 from signerf_jax.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -205,7 +207,7 @@ def run_ablations(names: list[str], gin_files: list[str], gin_params: list[str],
   """Runs the chosen ablations; returns the results and the common gin settings."""
   log = lambda line: print(f"ablations: {line}", flush=True)
   configs.parse_gin(gin_files, gin_params)
-  config, settings = AblationConfig(), demo.DemoSettings()
+  config, settings = AblationConfig(), configs.build(demo.DemoSettings)
   model = demo.model_directory(model)
   scene = demo.ensure_scene(out / "scene", settings.scene_seed)
   bindings = demo.edit_bindings(out / "scene", scene, settings, settings.prompt, model)

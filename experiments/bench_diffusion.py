@@ -178,7 +178,7 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
   torch.set_num_threads(threads)
   torch.manual_seed(seed)
   torch_unet = diffusers.UNet2DConditionModel(**SD15_UNET).eval()
-  attention = AttentionOptions()
+  attention = configs.build(AttentionOptions)
   unet_config = model_configs.UNetConfig.from_dict(dict(torch_unet.config))
   unet = UNet2DCondition(unet_config, attention)
   unet_bf16 = dataclasses.replace(unet, compute_dtype=jnp.bfloat16)

@@ -33,7 +33,7 @@ import numpy as np
 from signerf_jax import configs, files
 from signerf_jax.data import load_dataset
 from signerf_jax.editing import figures
-from signerf_jax.nerf import evaluate, render, train
+from signerf_jax.nerf import capacity, evaluate, render, train, training_run
 
 import plotting  # experiments/plotting.py (this script's directory is on sys.path)
 
@@ -81,15 +81,16 @@ def figure(held_out, renders) -> np.ndarray:
   return figures.image_grid(rows, labels)
 
 
-def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path) -> dict[str, Any]:
-  """Trains `name` with the schedule spanning max(seconds), evaluating at each time; held-out
-  views (`figure`) go to `figure_path`."""
+def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path,
+                      config: train.TrainConfig, rules: capacity.CapacityRules
+                      ) -> dict[str, Any]:
+  """Trains `name` (sized by `rules`) with the schedule spanning max(seconds), evaluating at
+  each time; held-out views (`figure`) go to `figure_path`."""
   seconds = sorted(seconds)
   training, held_out = load_scene(name)
-  model = train.build_model(training)
-  config = dataclasses.replace(train.TrainConfig(), max_seconds=seconds[-1],
-                               steps=1_000_000_000)
-  trainer = train.make_trainer(training, model=model, config=config)
+  model = training_run.build_model(training, rules=rules)
+  config = dataclasses.replace(config, max_seconds=seconds[-1], steps=1_000_000_000)
+  trainer = training_run.make_trainer(training, model=model, config=config)
   curve, renders = [], None
   for limit in seconds:
     trainer.run(until_seconds=limit, progress=False)
@@ -143,17 +144,19 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
       results/<stem>.partial.json the result so far after every scene.
   """
   seconds = dict(seconds or {})
+  config, rules = configs.build(train.TrainConfig), configs.build(capacity.CapacityRules)
   result: dict[str, Any] = {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),
                   "cpu_count": os.cpu_count(), "jax": jax.__version__,
                   "shared_with_other_jobs": machine_shared,
                   "load_average_at_start": os.getloadavg()},
-      "train_config": dataclasses.asdict(train.TrainConfig()),
+      "train_config": dataclasses.asdict(config),
       "scenes": {},
   }
   for name in scenes:
     result["scenes"][name] = train_and_measure(name, seconds.get(name, (60, 120, 300, 600)),
-                                               RESULTS / f"{output_stem}_{name}.png")
+                                               RESULTS / f"{output_stem}_{name}.png", config,
+                                               rules)
     files.write_json(RESULTS / f"{output_stem}.partial.json", result)
   result["load_average_at_end"] = os.getloadavg()
   return result

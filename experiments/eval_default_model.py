@@ -29,8 +29,11 @@ import jax
 import numpy as np
 
 from signerf_jax import configs, files
-from signerf_jax.default_model import evaluation, training_data
+from signerf_jax.default_model import (evaluation, evaluation_consistency,
+                                       evaluation_generation, evaluation_singles,
+                                       training_data)
 from signerf_jax.diffusion import pipeline as pipeline_lib
+from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.editing import figures, generation
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
@@ -55,8 +58,8 @@ def stack_vertically(images) -> np.ndarray:
                                 constant_values=1.0) for image in images])
 
 
-def samples_figure(singles: evaluation.ViewInputs, single_images: dict,
-                   sheets: evaluation.ViewInputs, sheet_images: dict,
+def samples_figure(singles: evaluation_generation.ViewInputs, single_images: dict,
+                   sheets: evaluation_generation.ViewInputs, sheet_images: dict,
                    layout: sheet_lib.SheetLayout, settings: evaluation.EvaluationSettings
                    ) -> np.ndarray:
   """The figure of the module docstring, [H, W, 3] in [0, 1]."""
@@ -143,22 +146,24 @@ def main(argv=None) -> int:
   load_at_start = os.getloadavg()
   configs.parse_gin(args.gin_file or ["eval_default_model"], args.gin_param)
   settings, thresholds = evaluation.EvaluationSettings(), evaluation.QualityGates()
-  options = pipeline_lib.GenerationOptions()
+  options = configs.build(pipeline_lib.GenerationOptions)
 
   data = training_data.load_split(args.data, "eval", keep=None, progress=False)
-  single_indices, sheet_indices = evaluation.select_samples(data.singles, data.sheets, settings)
-  singles = evaluation.ViewInputs.from_arrays(data.singles, single_indices)
-  sheets = evaluation.ViewInputs.from_arrays(data.sheets, sheet_indices)
-  single_generator = generation.load_generator(args.model, "", "", "", "", options,
-                                               settings.singles_per_device)
+  single_indices, sheet_indices = evaluation_generation.select_samples(data.singles, data.sheets,
+                                                                       settings)
+  singles = evaluation_generation.ViewInputs.from_arrays(data.singles, single_indices)
+  sheets = evaluation_generation.ViewInputs.from_arrays(data.sheets, sheet_indices)
+  single_generator = generation.load_generator(
+      args.model, "", "", "", "", options, settings.singles_per_device,
+      attention=configs.build(AttentionOptions))
   sheet_generator = dataclasses.replace(single_generator,
                                         views_per_device=settings.sheets_per_device)
   load_seconds = time.monotonic() - start
 
-  timer = evaluation.CallTimer()
-  single_measures, single_images = evaluation.evaluate_singles(single_generator, singles,
-                                                               settings, timer)
-  consistency, sheet_images = evaluation.evaluate_consistency(
+  timer = evaluation_generation.CallTimer()
+  single_measures, single_images = evaluation_singles.evaluate_singles(single_generator, singles,
+                                                                       settings, timer)
+  consistency, sheet_images = evaluation_consistency.evaluate_consistency(
       sheet_generator, single_generator, sheets, data.layout, settings, timer)
   shape = single_measures["shape_adherence"]
   gates = evaluation.quality_gates(single_measures["prompt_adherence"]["share"],

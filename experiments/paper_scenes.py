@@ -26,7 +26,8 @@ import gin
 import numpy as np
 
 from signerf_jax import configs, files
-from signerf_jax.editing import commands, figures, sweeps
+from signerf_jax.editing import commands, figures
+from signerf_jax.editing.commands import sweeps
 from signerf_jax.editing.config import as_json
 from signerf_jax.errors import InputError
 
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
   except InputError as error:
     print(f"paper_scenes: error: {error}", file=sys.stderr)
     return 2
-  final = 2 if edit.config.second_iteration else 1
+  final = 2 if edit.settings.edit.second_iteration else 1
   evaluation = edit.directory.path("evaluation")
   summary = sweeps.summarize_edit(edit)
   output = Path(args.results) / f"paper_scenes_{args.scene}.json"

@@ -51,16 +51,18 @@ import numpy as np
 
 from signerf_jax import configs, files, parallel
 from signerf_jax.clip import word_tokenizer
-from signerf_jax.data import synthetic
+from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.default_model import export
 from signerf_jax.default_model import model as model_lib
 from signerf_jax.diffusion import pipeline as pipeline_lib
+from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.editing import crops, generation, update
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import control_depth
-from signerf_jax.nerf import train
+from signerf_jax.nerf import capacity as capacity_lib
+from signerf_jax.nerf import train, training_run
 
 import plotting  # experiments/plotting.py (this script's directory is on sys.path)
 
@@ -98,6 +100,30 @@ class ScalingConfig:
   image_tolerance: float = 1e-4
   loss_tolerance: float = 1e-4
   worker_timeout_seconds: float = 600.0
+
+
+@dataclasses.dataclass(frozen=True)
+class LibrarySettings:
+  """The library's settings a worker uses, built from the gin bindings (`from_gin`).
+
+  Attributes:
+    scene, cameras: the synthetic scene (`synthetic_scene.*`, `synthetic_cameras.*`).
+    generation, attention: the image set update's diffusion settings.
+    training, capacity: the NeRF's training settings and how its size is derived.
+  """
+
+  scene: synthetic.SceneSettings
+  cameras: synthetic_render.CameraRig
+  generation: pipeline_lib.GenerationOptions
+  attention: AttentionOptions
+  training: train.TrainConfig
+  capacity: capacity_lib.CapacityRules
+
+  @classmethod
+  def from_gin(cls) -> "LibrarySettings":
+    return cls(configs.build(synthetic.SceneSettings), configs.build(synthetic_render.CameraRig),
+               configs.build(pipeline_lib.GenerationOptions), configs.build(AttentionOptions),
+               configs.build(train.TrainConfig), configs.build(capacity_lib.CapacityRules))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -149,13 +175,13 @@ def update_inputs(dataset, layout: sheet_lib.SheetLayout, count: int):
   return views, np.asarray(sheet_rgb), np.asarray(sheet_control)
 
 
-def measure_update(config: ScalingConfig, model: str, dataset, devices
-                   ) -> tuple[dict, np.ndarray]:
+def measure_update(config: ScalingConfig, library: LibrarySettings, model: str, dataset,
+                   devices) -> tuple[dict, np.ndarray]:
   """Views per second of the sharded image set update, and the edited views."""
   started = time.perf_counter()
-  generator = generation.load_generator(model, "", "", config.prompt, "",
-                                        pipeline_lib.GenerationOptions(),
-                                        config.views_per_device, parallel.device_mesh(devices, generation.MESH_AXIS))
+  generator = generation.load_generator(model, "", "", config.prompt, "", library.generation,
+                                        config.views_per_device, attention=library.attention,
+                                        mesh=parallel.device_mesh(devices, generation.MESH_AXIS))
   tile = generation.native_tile_size(model)
   layout = sheet_lib.SheetLayout(tile_height=tile, tile_width=tile)
   views, sheet_rgb, sheet_control = update_inputs(dataset, layout, config.update_views)
@@ -180,12 +206,14 @@ def measure_update(config: ScalingConfig, model: str, dataset, devices
           "seconds": seconds, "views_per_second": config.update_views / seconds}, edited
 
 
-def measure_nerf(config: ScalingConfig, dataset, devices) -> tuple[dict, dict[str, np.ndarray]]:
+def measure_nerf(config: ScalingConfig, library: LibrarySettings, dataset, devices
+                 ) -> tuple[dict, dict[str, np.ndarray]]:
   """Steps and rays per second of data-parallel training; the losses and final parameters."""
-  model = train.build_model(dataset)
-  run_config = train.TrainConfig(steps=config.nerf_warmup_steps + config.nerf_steps)
-  trainer = train.make_trainer(dataset, model=model, config=run_config,
-                               mesh=parallel.device_mesh(devices))
+  model = training_run.build_model(dataset, rules=library.capacity)
+  run_config = dataclasses.replace(library.training,
+                                   steps=config.nerf_warmup_steps + config.nerf_steps)
+  trainer = training_run.make_trainer(dataset, model=model, config=run_config,
+                                      mesh=parallel.device_mesh(devices))
   losses = []
   started = time.perf_counter()
   for step in range(1, config.nerf_warmup_steps + 1):
@@ -208,10 +236,12 @@ def measure_nerf(config: ScalingConfig, dataset, devices) -> tuple[dict, dict[st
           "final_loss": losses[-1]}, {"losses": np.asarray(losses), **arrays}
 
 
-def run_worker(config: ScalingConfig, devices: Sequence, output: Path) -> None:
+def run_worker(config: ScalingConfig, library: LibrarySettings, devices: Sequence, output: Path
+               ) -> None:
   """Measures on `devices`; writes output.json and output.npz (process 0 only)."""
   with tempfile.TemporaryDirectory() as workdir:
-    dataset, _ = synthetic.generate(Path(workdir) / "scene", seed=config.scene_seed)
+    dataset, _ = synthetic_render.generate(Path(workdir) / "scene", seed=config.scene_seed,
+                                           settings=library.scene, rig=library.cameras)
     model, model_kind = diffusion_model(Path(workdir) / "random_model", config.prompt)
     result: dict[str, Any] = {
         "devices": len(devices), "processes": jax.process_count(),
@@ -221,11 +251,12 @@ def run_worker(config: ScalingConfig, devices: Sequence, output: Path) -> None:
         "scene": {"views": dataset.num_images, "image_size": [dataset.width, dataset.height]}}
     arrays: dict[str, np.ndarray] = {}
     try:
-      result["update"], arrays["edited"] = measure_update(config, model, dataset, devices)
+      result["update"], arrays["edited"] = measure_update(config, library, model, dataset,
+                                                          devices)
     except Exception as error:  # pylint: disable=broad-except
       # Recorded, not raised: the NeRF measurement still runs and the driver reports it.
       result["update"] = {"error": f"{type(error).__name__}: {error}"}
-  result["nerf"], nerf_arrays = measure_nerf(config, dataset, devices)
+  result["nerf"], nerf_arrays = measure_nerf(config, library, dataset, devices)
   arrays.update({f"nerf_{name}": value for name, value in nerf_arrays.items()})
   if jax.process_index() == 0:
     with files.atomic_path(output.with_suffix(".npz")) as temporary:
@@ -433,7 +464,8 @@ def main(argv=None) -> int:
   config = ScalingConfig()
   if args.coordinator_address or args.devices:
     output = Path(args.output or RESULTS / "scaling_multihost")
-    run_worker(config, jax.devices()[:args.devices] if args.devices else jax.devices(), output)
+    run_worker(config, LibrarySettings.from_gin(),
+               jax.devices()[:args.devices] if args.devices else jax.devices(), output)
     if not args.devices and jax.process_index() == 0:
       files.write_text(output.with_suffix(".gin"), gin.config_str())
       print(f"scaling: multi-host results in {output}.json")

@@ -1,11 +1,20 @@
-"""gin plumbing shared by every command and experiment: flags, parse, locate, save."""
+"""The gin edge: flags, parsing, the library's configurable classes, building them, saving.
+
+Library code never reads gin: its settings are plain frozen dataclasses passed as arguments.
+The commands and experiments parse gin (`parse_gin`) and turn the bindings into those
+dataclasses with `build`, under the gin names of `configurables()` (e.g. `TrainConfig.steps`,
+`finetune/TrainConfig.steps` in scope "finetune", `synthetic_cameras.num_views`).
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
+import functools
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Sequence, TypeVar
 
 import gin
 from gin import config_parser
@@ -16,6 +25,76 @@ from signerf_jax.errors import InputError
 # gin_configs/ sits next to the package in the repository (the design card fixes the layout).
 GIN_CONFIG_DIR = Path(__file__).resolve().parent.parent / "gin_configs"
 SAVED_CONFIG_NAME = "config.gin"
+Config = TypeVar("Config")
+
+
+def configurables() -> dict[type, str]:
+  """Every config dataclass gin may bind -> its gin name (`<name>.<field> = value`).
+
+  Imported when first needed rather than at the top: some classes live in edges that import
+  this module (`demo` in editing.demo), which would find it half-initialised.
+  """
+  # pylint: disable=g-import-not-at-top
+  from signerf_jax.data.synthetic import SceneSettings
+  from signerf_jax.data.synthetic_render import CameraRig
+  from signerf_jax.diffusion.attention import AttentionOptions
+  from signerf_jax.diffusion.pipeline import GenerationOptions
+  from signerf_jax.editing import config as edit
+  from signerf_jax.editing.demo import DemoSettings
+  from signerf_jax.geometry.reference_cameras import ReferencePlacement
+  from signerf_jax.metrics.consistency import ConsistencySettings
+  from signerf_jax.nerf.capacity import CapacityRules
+  from signerf_jax.nerf.commands import DataConfig
+  from signerf_jax.nerf.train import TrainConfig
+  return {
+      TrainConfig: "TrainConfig",
+      CapacityRules: "CapacityRules",
+      DataConfig: "DataConfig",
+      SceneSettings: "synthetic_scene",
+      CameraRig: "synthetic_cameras",
+      ConsistencySettings: "consistency",
+      ReferencePlacement: "ReferencePlacement",
+      AttentionOptions: "AttentionOptions",
+      GenerationOptions: "GenerationOptions",
+      edit.EditConfig: "EditConfig",
+      edit.SelectionConfig: "SelectionConfig",
+      edit.SheetConfig: "SheetConfig",
+      edit.PreviewConfig: "PreviewConfig",
+      edit.UpdateConfig: "UpdateConfig",
+      edit.FinetuneConfig: "FinetuneConfig",
+      edit.EvaluationConfig: "EvaluationConfig",
+      DemoSettings: "demo",
+  }
+
+
+@functools.cache
+def _gin_classes() -> dict[type, type]:
+  """Each class of `configurables()` -> the subclass gin registered for it, which applies the
+  bindings when called (the class itself stays plain). Registered once per process."""
+  return {cls: gin.external_configurable(cls, name=name) for cls, name in configurables().items()}
+
+
+def build(cls: type[Config], scope: str | None = None) -> Config:
+  """`cls()` with the current gin bindings of its gin name applied.
+
+  Args:
+    cls: a class of `configurables()`, e.g. `train.TrainConfig`.
+    scope: a gin scope to build in, e.g. "finetune": `finetune/TrainConfig.*` bindings win
+      over `TrainConfig.*` ones; None: only the scopes the caller has entered (usually none).
+  Returns:
+    an instance of `cls` itself (equal to `cls(...)` with the same values).
+  Raises:
+    InputError: `cls` is not one of `configurables()`, or its own checks reject a bound value.
+  """
+  wrapped = _gin_classes().get(cls)
+  if wrapped is None:
+    raise InputError(f"{getattr(cls, '__qualname__', repr(cls))} is not a class gin binds (see "
+                     "configs.configurables())", field="cls")
+  with gin.config_scope(scope) if scope is not None else contextlib.nullcontext():
+    instance = wrapped()
+  # Dataclasses compare classes too: an instance of gin's subclass never equals a plain one.
+  return cls(**{field.name: getattr(instance, field.name)
+                for field in dataclasses.fields(cls) if field.init})
 
 
 def add_gin_arguments(parser: argparse.ArgumentParser,
@@ -73,7 +152,8 @@ def check_gin_is_data(text: str, source: str | os.PathLike | None,
 def parse_gin(gin_files: Sequence[str | os.PathLike] = (), gin_params: Sequence[str] = (),
               finalize: bool = True) -> None:
   """Clears any previous bindings, then applies files in order and parameters on top (each
-  checked first: `check_gin_is_data`)."""
+  checked first: `check_gin_is_data`). Every class of `configurables()` is registered first."""
+  _gin_classes()
   gin.clear_config()
   paths = [resolve_gin_file(name) for name in gin_files]
   for path in paths:
@@ -92,5 +172,6 @@ def parse_gin(gin_files: Sequence[str | os.PathLike] = (), gin_params: Sequence[
 def save_gin_config(directory: str | os.PathLike) -> Path:
   """Writes every current binding (not only the ones used so far) to `directory`/config.gin."""
   path = Path(directory) / SAVED_CONFIG_NAME
+  path.parent.mkdir(parents=True, exist_ok=True)
   files.write_text(path, gin.config_str())
   return path

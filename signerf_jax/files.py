@@ -1,7 +1,8 @@
 """Reading and writing files: atomic writes, JSON, 8/16-bit images and EXR depth maps.
 
 Every writer goes through `atomic_path`, so an interrupted run never leaves a half-written file:
-the data lands in a temporary file next to the target and is renamed over it only when complete.
+the data lands in a temporary file next to the target, is flushed to disk, and is renamed over
+the target only when complete.
 """
 
 from __future__ import annotations
@@ -33,11 +34,23 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
   os.chmod(temporary, 0o666 & ~_current_umask())
   try:
     yield Path(temporary)
+    # On disk before the rename, and the rename itself on disk after it: a power loss leaves the
+    # old file or the new one, never an empty or partial file under the target's name.
+    _fsync(temporary, os.O_RDONLY)
     os.replace(temporary, path)
+    _fsync(path.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
   except BaseException:
     with contextlib.suppress(FileNotFoundError):
       os.remove(temporary)
     raise
+
+
+def _fsync(path: str | os.PathLike, flags: int) -> None:
+  descriptor = os.open(path, flags)
+  try:
+    os.fsync(descriptor)
+  finally:
+    os.close(descriptor)
 
 
 def _current_umask() -> int:
@@ -80,17 +93,79 @@ def read_json(path: str | os.PathLike) -> Any:
     raise InputError(f"not valid JSON ({error})", path) from None
 
 
+# Larger images are refused before decoding (a 100 megapixel RGBA image is 1.6 GB as float32):
+# a few bytes of header can otherwise make the decoder allocate gigabytes.
+MAX_IMAGE_PIXELS = 100_000_000
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_START = b"\xff\xd8"
+# JPEG start-of-frame markers (baseline, progressive, lossless, ...) hold the image size.
+JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _png_size(data: bytes, path: Path) -> tuple[int, int]:
+  """(width, height) from the IHDR chunk; the file must end with its IEND chunk."""
+  if len(data) < 24 or data[12:16] != b"IHDR":
+    raise InputError("not a readable image (PNG without an IHDR header)", path)
+  if b"IEND" not in data[-12:]:
+    raise InputError("truncated image (the PNG's IEND chunk is missing)", path)
+  return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def _jpeg_size(data: bytes, path: Path) -> tuple[int, int]:
+  """(width, height) from the first start-of-frame segment; the scan data must be followed by
+  the end-of-image marker (a truncated JPEG otherwise decodes with grey where data is missing)."""
+  position = 2
+  while position + 4 <= len(data):
+    if data[position] != 0xFF:
+      break
+    marker = data[position + 1]
+    if marker == 0xFF:  # Fill byte.
+      position += 1
+      continue
+    length = int.from_bytes(data[position + 2:position + 4], "big")
+    if marker in JPEG_FRAME_MARKERS and position + 9 <= len(data):
+      height = int.from_bytes(data[position + 5:position + 7], "big")
+      width = int.from_bytes(data[position + 7:position + 9], "big")
+      if data.rfind(b"\xff\xd9") < position:
+        raise InputError("truncated image (the JPEG's end-of-image marker is missing)", path)
+      return width, height
+    position += 2 + length
+  raise InputError("not a readable image (JPEG without a frame header, or truncated)", path)
+
+
+def _checked_size(data: bytes, path: Path) -> tuple[int, int] | None:
+  """(width, height) of a PNG or JPEG read from its header alone, after checking the file is
+  complete; None for other formats (left to the decoder)."""
+  if data.startswith(PNG_SIGNATURE):
+    size = _png_size(data, path)
+  elif data.startswith(JPEG_START):
+    size = _jpeg_size(data, path)
+  else:
+    return None
+  if size[0] * size[1] > MAX_IMAGE_PIXELS:
+    raise InputError(f"{size[0]}x{size[1]} pixels is more than the {MAX_IMAGE_PIXELS:,} an image "
+                     "may have here", path)
+  return size
+
+
 def read_image(path: str | os.PathLike) -> np.ndarray:
-  """Reads an 8- or 16-bit PNG/JPEG.
+  """Reads an 8- or 16-bit PNG/JPEG (other formats OpenCV reads are decoded unchecked).
 
   Returns:
     [H, W, C] float32 in [0, 1], channels RGB or RGBA (C = 3 or 4); grey images get C = 1.
+  Raises:
+    InputError: a missing, unreadable, truncated or (PNG/JPEG) oversized file, the size read
+      from its header before anything is decoded.
   """
   path = Path(path)
   if not path.is_file():
     raise InputError("image file not found", path)
-  image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-  if image is None:
+  data = path.read_bytes()
+  if not data:
+    raise InputError("not a readable image (the file is empty)", path)
+  size = _checked_size(data, path)
+  image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+  if image is None or (size is not None and image.shape[1::-1] != size):
     raise InputError("not a readable image", path)
   scale = np.float32(np.iinfo(image.dtype).max) if image.dtype.kind in "ui" else np.float32(1)
   image = image.astype(np.float32) / scale

@@ -53,7 +53,9 @@ def find_weight_files(directory: str | os.PathLike, variant: str | None = None) 
 
 def read_safetensors(paths: Sequence[str | os.PathLike] | str | os.PathLike,
                      dtype=np.float32) -> dict[str, np.ndarray]:
-  """All tensors of one or more safetensors files, cast to `dtype` (fp16/bf16 upcast exactly)."""
+  """All tensors of one or more safetensors files: floating-point ones cast to `dtype` (fp16/bf16
+  upcast exactly), integer and boolean ones (buffers such as position ids) kept as they are;
+  `check_tensors` refuses them where the model needs weights."""
   from safetensors import safe_open  # pylint: disable=g-import-not-at-top
 
   if isinstance(paths, (str, os.PathLike)):
@@ -68,7 +70,8 @@ def read_safetensors(paths: Sequence[str | os.PathLike] | str | os.PathLike,
         for name in handle.keys():
           if name in tensors:
             raise InputError("tensor appears in more than one shard", path, name)
-          tensors[name] = np.asarray(handle.get_tensor(name)).astype(dtype)
+          tensor = np.asarray(handle.get_tensor(name))
+          tensors[name] = tensor if tensor.dtype.kind in "biu" else tensor.astype(dtype)
     except InputError:
       raise
     except Exception as error:  # safetensors raises its own error types on corrupt headers.
@@ -79,7 +82,8 @@ def read_safetensors(paths: Sequence[str | os.PathLike] | str | os.PathLike,
 def check_tensors(expected_shapes: Mapping[str, tuple[int, ...]],
                   tensors: Mapping[str, np.ndarray], source: str | os.PathLike,
                   ignore: Iterable[str] = ()) -> None:
-  """Raises InputError unless `tensors` has exactly the expected names and shapes.
+  """Raises InputError unless `tensors` has exactly the expected names and shapes, each of
+  floating-point values, all finite (NaN weights would only show as NaN images much later).
 
   Args:
     expected_shapes: reference-framework tensor name -> shape the model needs.
@@ -99,6 +103,14 @@ def check_tensors(expected_shapes: Mapping[str, tuple[int, ...]],
                      f"({len(extra)} unexpected in all): does the config match the weights?",
                      source, extra[0])
   for name, shape in expected_shapes.items():
-    if tuple(tensors[name].shape) != tuple(shape):
-      raise InputError(f"tensor {name} has shape {tuple(tensors[name].shape)} but the config "
+    tensor = tensors[name]
+    if tuple(tensor.shape) != tuple(shape):
+      raise InputError(f"tensor {name} has shape {tuple(tensor.shape)} but the config "
                        f"needs {tuple(shape)}", source, name)
+    if tensor.dtype.kind in "biuOSU":  # Not "f": ml_dtypes' bfloat16 is kind "V".
+      raise InputError(f"tensor {name} holds {tensor.dtype} values; the model needs "
+                       "floating-point weights", source, name)
+    finite = np.isfinite(tensor)
+    if not finite.all():
+      raise InputError(f"tensor {name} has {tensor.size - int(finite.sum())} NaN or infinite "
+                       "values", source, name)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from signerf_jax import camera
+from signerf_jax import camera, lens
 
 # OpenCV's perspective model, (k1, k2, p1, p2, k3, k4, k5, k6): a pinhole, two radial-tangential
 # lenses and a rational one (a wide-angle calibration's shape: the denominator tames the corners).
@@ -89,7 +89,7 @@ def test_every_derived_batch_keeps_the_lens_model():
 def test_distort_matches_opencv(distortion):
   rng = np.random.default_rng(0)
   points = rng.uniform(-0.6, 0.6, (100, 2)).astype(np.float32)
-  x, y = camera.distort(points[:, 0], points[:, 1], jnp.asarray(distortion, jnp.float32))
+  x, y = lens.distort(points[:, 0], points[:, 1], jnp.asarray(distortion, jnp.float32))
   homogeneous = np.concatenate([points, np.ones((100, 1), np.float32)], -1)
   expected, _ = cv2.projectPoints(homogeneous, np.zeros(3), np.zeros(3), np.eye(3),
                                   np.asarray(distortion, np.float64))
@@ -101,7 +101,7 @@ def test_fisheye_distort_matches_opencv(distortion):
   rng = np.random.default_rng(0)
   points = rng.uniform(-2.0, 2.0, (100, 2)).astype(np.float32)  # up to 70 degrees off the axis
   coefficients = jnp.asarray(distortion + (0.0,) * 4, jnp.float32)
-  x, y = camera.distort(points[:, 0], points[:, 1], coefficients, fisheye=True)
+  x, y = lens.distort(points[:, 0], points[:, 1], coefficients, fisheye=True)
   expected = cv2.fisheye.distortPoints(points[:, None].astype(np.float64), np.eye(3),
                                        np.asarray(distortion, np.float64))
   np.testing.assert_allclose(np.stack([x, y], -1), expected[:, 0], atol=1e-5)
@@ -116,9 +116,9 @@ def test_undistort_round_trips_over_the_whole_image_and_matches_opencv(distortio
   fx, fy, cx, cy = (float(value[0]) for value in (cameras.fx, cameras.fy, cameras.cx, cameras.cy))
   x_distorted, y_distorted = (pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy
   coefficients = cameras.distortion[0]
-  x, y = camera.undistort(x_distorted, y_distorted, coefficients, fisheye)
+  x, y = lens.undistort(x_distorted, y_distorted, coefficients, fisheye)
   assert np.all(np.isfinite(x)) and np.all(np.isfinite(y))
-  again = np.stack(camera.distort(x, y, coefficients, fisheye), -1)
+  again = np.stack(lens.distort(x, y, coefficients, fisheye), -1)
   np.testing.assert_allclose(again * [fx, fy] + [cx, cy], pixels, atol=1e-3)
 
   distorted = np.stack([x_distorted, y_distorted], -1)[:, None].astype(np.float64)
@@ -138,8 +138,8 @@ def test_undistort_stays_finite_where_the_lens_folds_over(distortion, fisheye):
   theta_d peaks at 74 degrees), probed out to 20 times past the fold."""
   coefficients = make_cameras(distortion, fisheye).distortion[0]
   points = np.linspace(-20.0, 20.0, 41, dtype=np.float32)
-  x, y = camera.undistort(points, points[::-1], coefficients, fisheye)
-  directions = camera.camera_directions(points, points[::-1], coefficients, fisheye)
+  x, y = lens.undistort(points, points[::-1], coefficients, fisheye)
+  directions = lens.camera_directions(points, points[::-1], coefficients, fisheye)
   assert np.all(np.isfinite(x)) and np.all(np.isfinite(y))
   np.testing.assert_allclose(np.linalg.norm(directions, axis=-1), 1.0, atol=1e-6)
 

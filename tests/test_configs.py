@@ -1,13 +1,26 @@
-"""gin files are data: statements that would run code are refused before gin sees them."""
+"""gin at the edge: files are data (statements that would run code are refused before gin sees
+them), the library's classes ignore gin, and `configs.build` makes them from the bindings."""
 
+import dataclasses
+import importlib
+import pkgutil
 import sys
 
 import gin
 import pytest
 
-from signerf_jax import configs
+from signerf_jax import configs, default_model
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import train
+from signerf_jax.nerf import capacity, train
+
+# What the experiments' scripts register themselves (they are not importable modules).
+EXPERIMENT_CONFIGURABLES = ["ablations", "bench_nerf", "benchmark", "scaling"]
+
+
+@pytest.fixture
+def clear_gin():
+  yield
+  gin.clear_config()
 
 
 @pytest.fixture
@@ -55,15 +68,62 @@ def test_an_included_file_is_checked_too_and_include_cycles_are_errors(tmp_path,
     configs.parse_gin([outer])
 
 
-def test_bindings_still_apply_and_a_saved_config_reads_back(tmp_path):
+def test_bindings_still_apply_and_a_saved_config_reads_back(tmp_path, clear_gin):
   path = tmp_path / "good.gin"
   path.write_text("# a comment\nTrainConfig.steps = 7\nTrainConfig.learning_rate = 0.005\n")
   configs.parse_gin([path], ["TrainConfig.seed = 3"])
-  assert (train.TrainConfig().steps, train.TrainConfig().seed) == (7, 3)
+  built = configs.build(train.TrainConfig)
+  assert (built.steps, built.seed) == (7, 3)
   saved = configs.save_gin_config(tmp_path)
   configs.parse_gin([saved])
-  assert train.TrainConfig().learning_rate == 0.005
+  assert configs.build(train.TrainConfig) == built
+
+
+def test_build_applies_bindings_and_scopes_and_returns_the_plain_class(clear_gin):
+  configs.parse_gin([], ["TrainConfig.steps = 7", "finetune/TrainConfig.seed = 2",
+                         "CapacityRules.overrides = {'num_levels': 4}"])
+  built = configs.build(train.TrainConfig)
+  assert type(built) is train.TrainConfig and built == train.TrainConfig(steps=7)
+  assert configs.build(train.TrainConfig, "finetune") == train.TrainConfig(steps=7, seed=2)
+  assert configs.build(train.TrainConfig, "retrain") == built
+  rules = configs.build(capacity.CapacityRules)
+  assert rules == capacity.CapacityRules(overrides={"num_levels": 4})
+  with gin.config_scope("finetune"):  # A scope the caller entered applies too.
+    assert configs.build(train.TrainConfig).seed == 2
+
+
+def test_the_plain_classes_ignore_bindings(clear_gin):
+  configs.parse_gin([], ["TrainConfig.steps = 7", "CapacityRules.samples_per_batch = 1024"])
+  assert train.TrainConfig().steps == 5000
+  assert capacity.CapacityRules().samples_per_batch == 65536
+  assert train.TrainConfig() != configs.build(train.TrainConfig)
   gin.clear_config()
+  assert configs.build(train.TrainConfig) == train.TrainConfig()
+
+
+def test_build_refuses_a_class_gin_does_not_bind():
+  with pytest.raises(InputError, match="Capacity is not a class gin binds") as error:
+    configs.build(capacity.Capacity)
+  assert error.value.field == "cls"
+
+
+def test_a_bound_value_the_class_rejects_is_an_input_error(clear_gin):
+  configs.parse_gin([], ["CapacityRules.level_growth = 0.5"])
+  with pytest.raises(InputError) as error:
+    configs.build(capacity.CapacityRules)
+  assert error.value.field == "CapacityRules.level_growth"
+
+
+def test_every_configurable_is_a_frozen_dataclass_under_its_own_gin_name():
+  table = configs.configurables()
+  assert sorted(table.values()) == sorted([
+      "TrainConfig", "CapacityRules", "DataConfig", "synthetic_scene", "synthetic_cameras",
+      "consistency", "ReferencePlacement", "AttentionOptions", "GenerationOptions",
+      "EditConfig", "SelectionConfig", "SheetConfig", "PreviewConfig",
+      "UpdateConfig", "FinetuneConfig", "EvaluationConfig", "demo"])
+  for cls in table:
+    assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen, cls
+    assert cls.__module__.startswith("signerf_jax."), cls
 
 
 def test_bad_syntax_names_the_file_and_line(tmp_path):
@@ -78,3 +138,15 @@ def test_bad_syntax_names_the_file_and_line(tmp_path):
                          ids=lambda path: path.name)
 def test_the_projects_own_gin_files_are_data(path):
   configs.check_gin_is_data(path.read_text(), path)
+
+
+@pytest.mark.parametrize("path", sorted(configs.GIN_CONFIG_DIR.rglob("*.gin")),
+                         ids=lambda path: str(path.relative_to(configs.GIN_CONFIG_DIR)))
+def test_the_projects_own_gin_files_bind_registered_names_only(path, clear_gin):
+  """Every configurable a gin file names exists (the library's table, default_model's own, or
+  an experiment script's) with the parameters it binds."""
+  for module in pkgutil.iter_modules(default_model.__path__):
+    importlib.import_module(f"{default_model.__name__}.{module.name}")
+  configs.parse_gin([], finalize=False)
+  gin.parse_config_files_and_bindings([str(path)], [], finalize_config=False,
+                                      skip_unknown=EXPERIMENT_CONFIGURABLES)

@@ -1,3 +1,6 @@
+import struct
+import zlib
+
 import numpy as np
 import pytest
 
@@ -52,3 +55,47 @@ def test_bad_files_name_themselves(tmp_path):
   (tmp_path / "garbage.exr").write_bytes(b"not an exr")
   with pytest.raises(InputError, match="garbage.exr"):
     files.read_exr(tmp_path / "garbage.exr")
+
+
+def _png_header_only(width: int, height: int) -> bytes:
+  """A PNG whose IHDR claims width x height, with no pixel data (a decompression bomb's
+  header costs nothing to write)."""
+  ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+  chunk = lambda kind, body: (struct.pack(">I", len(body)) + kind + body
+                              + struct.pack(">I", zlib.crc32(kind + body)))
+  return files.PNG_SIGNATURE + chunk(b"IHDR", ihdr) + chunk(b"IEND", b"")
+
+
+def test_an_oversized_image_is_refused_from_its_header(tmp_path, monkeypatch):
+  path = tmp_path / "bomb.png"
+  path.write_bytes(_png_header_only(100_000, 100_000))
+  decoded = []
+  monkeypatch.setattr(files.cv2, "imdecode", lambda *args: decoded.append(args))
+  with pytest.raises(InputError, match="100000x100000 pixels is more than") as error:
+    files.read_image(path)
+  assert error.value.path == str(path) and decoded == []  # Nothing was decoded.
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+@pytest.mark.parametrize("kept", [0.5, 0.9, 0.999])
+def test_a_truncated_image_is_an_error_never_a_grey_image(tmp_path, suffix, kept):
+  image = np.random.default_rng(0).random((64, 48, 3)).astype(np.float32)
+  whole = tmp_path / f"whole{suffix}"
+  files.write_image(whole, image)
+  data = whole.read_bytes()
+  cut = tmp_path / f"cut{suffix}"
+  cut.write_bytes(data[:int(len(data) * kept)])
+  with pytest.raises(InputError, match="truncated|not a readable image") as error:
+    files.read_image(cut)
+  assert error.value.path == str(cut)
+  assert files.read_image(whole).shape == (64, 48, 3)
+
+
+@pytest.mark.parametrize("contents", [b"", b"not an image at all", files.PNG_SIGNATURE + b"x",
+                                      files.JPEG_START + b"\xff\xe0\x00"],
+                         ids=["empty", "text", "png_signature_only", "jpeg_start_only"])
+def test_garbage_is_not_a_readable_image(tmp_path, contents):
+  path = tmp_path / "image.png"
+  path.write_bytes(contents)
+  with pytest.raises(InputError, match="not a readable image|truncated"):
+    files.read_image(path)

@@ -35,3 +35,21 @@ def test_mismatches_name_the_tensor_and_shapes(tensors, message):
   with pytest.raises(InputError, match=message) as error:
     safetensors_io.check_tensors({"a": (2, 3), "b": (3,)}, tensors, "ckpt/unet")
   assert error.value.path == "ckpt/unet"
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.array([0.0, np.nan, 1.0], np.float16), "b has 1 NaN or infinite values"),
+    (np.array([0.0, np.inf, -np.inf], np.float32), "b has 2 NaN or infinite values"),
+    (np.array([1, 2, 3], np.int64), "b holds int64 values; the model needs floating-point"),
+], ids=["nan", "inf", "integer"])
+def test_weights_that_are_not_finite_floats_are_refused_naming_tensor_and_file(tmp_path, bad,
+                                                                                message):
+  path = tmp_path / "model.safetensors"
+  save_file({"a": np.zeros((2, 3), np.float32), "b": bad,
+             "position_ids": np.arange(3, dtype=np.int64)}, path)
+  tensors = safetensors_io.read_safetensors(path)
+  assert tensors["position_ids"].dtype == np.int64  # Buffers keep their integer type.
+  with pytest.raises(InputError, match=message) as error:
+    safetensors_io.check_tensors({"a": (2, 3), "b": (3,)}, tensors, path,
+                                 ignore=("position_ids",))
+  assert error.value.path == str(path) and error.value.field == "b"

@@ -59,11 +59,8 @@ class CLIPTextConfig:
 
     `with_projection` None reads it from `architectures`.
     """
-    if with_projection is None:
-      with_projection = "CLIPTextModelWithProjection" in config.get("architectures", ())
-    names = {field.name for field in dataclasses.fields(cls)} - {"with_projection"}
-    result = cls(**{name: config[name] for name in names if name in config},
-                 with_projection=with_projection)
+    result = transformer.tower_config(cls, config, with_projection,
+                                      "CLIPTextModelWithProjection")
     transformer.check_config(result, source)
     return result
 
@@ -170,13 +167,8 @@ def expected_shapes(config: CLIPTextConfig, prefix: str = TEXT_MODEL_PREFIX
 
 def params_from_tensors(config: CLIPTextConfig, tensors: Mapping[str, np.ndarray],
                         source: str | os.PathLike) -> dict:
-  """Flax params from a transformers state dict, after checking every name and shape.
-
-  Args:
-    config: the model the tensors must fit.
-    tensors: checkpoint name -> array, with or without the `text_model.` prefix.
-    source: the checkpoint, named in errors.
-  """
+  """Flax params for `config` from a transformers state dict (names with or without the
+  `text_model.` prefix), checked as `transformer.params_from_tensors` checks them."""
   return transformer.params_from_tensors(functools.partial(expected_shapes, config), tensors,
                                         TEXT_MODEL_PREFIX, source, _to_flax)
 
@@ -199,29 +191,18 @@ def tensors_from_params(config: CLIPTextConfig, params: Any, prefix: str = ""
   return tensors
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class TextEncoder:
+class TextEncoder(transformer.Tower):
   """A loaded text encoder: call it on [B, L] ids to get a CLIPTextOutput."""
-
-  config: CLIPTextConfig
-  params: Any
-
-  def __call__(self, input_ids) -> CLIPTextOutput:
-    return encode(self.config, self.params, jnp.asarray(input_ids, jnp.int32))
+  forward = staticmethod(encode)
+  input_dtype = jnp.int32
 
 
 def load_text_encoder(directory: str | os.PathLike, with_projection: bool | None = None
                       ) -> TextEncoder:
-  """A `text_encoder/` or `text_encoder_2/` folder: config.json + model.safetensors.
-
-  Args:
-    directory: the component folder.
-    with_projection: load as CLIPTextModelWithProjection; None decides from the config's
-      `architectures`, or, when that is absent, from whether the weights hold a projection.
-  """
-  config, tensors = transformer.read_checkpoint(directory, CLIPTextConfig, PROJECTION_NAME,
-                                                with_projection)
-  return TextEncoder(config, params_from_tensors(config, tensors, directory))
+  """A `text_encoder/` or `text_encoder_2/` folder (config.json + model.safetensors), as
+  CLIPTextModelWithProjection when `with_projection` (None: see `transformer.load_checkpoint`)."""
+  return TextEncoder(*transformer.load_checkpoint(directory, CLIPTextConfig, PROJECTION_NAME,
+                                                  with_projection, params_from_tensors))
 
 
 # ----------------------------------------------------------------------------------------------

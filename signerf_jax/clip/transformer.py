@@ -1,4 +1,5 @@
-"""The transformer both CLIP towers share, and how their transformers checkpoints load.
+"""The transformer both CLIP towers share, how their transformers checkpoints load, and a
+loaded tower (`Tower`: config and params, called on a batch).
 
 Each tower (`text`, `vision`) is embeddings, then `num_hidden_layers` pre-norm encoder layers
 (LayerNorm -> self-attention -> residual, LayerNorm -> MLP -> residual), then its own pooling and
@@ -10,10 +11,11 @@ none for images. Submodule names follow transformers' so that the weight mapping
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 import flax.linen as nn
 import jax
@@ -44,6 +46,18 @@ def check_config(config: Any, source: str | os.PathLike | None) -> None:
   if config.hidden_size % config.num_attention_heads:
     raise InputError(f"hidden_size {config.hidden_size} is not divisible by "
                      f"num_attention_heads {config.num_attention_heads}", source, "hidden_size")
+
+
+def tower_config(config_class: Any, config: Mapping[str, Any], with_projection: bool | None,
+                 projection_architecture: str) -> Any:
+  """A tower's config dataclass from a transformers config.json dict: the fields it has (other
+  keys, dropout, dtype, ..., are ignored), projecting when `with_projection`, or, for None, when
+  `architectures` names `projection_architecture`."""
+  if with_projection is None:
+    with_projection = projection_architecture in config.get("architectures", ())
+  names = {field.name for field in dataclasses.fields(config_class)} - {"with_projection"}
+  return config_class(**{name: config[name] for name in names if name in config},
+                      with_projection=with_projection)
 
 
 def layer_norm(config: Any, name: str) -> nn.LayerNorm:
@@ -152,16 +166,20 @@ def params_from_tensors(expected_shapes: Callable[[str], Mapping[str, tuple[int,
   return traverse_util.unflatten_dict(flat)
 
 
-def read_checkpoint(directory: str | os.PathLike, config_class: Any, projection_name: str,
-                    with_projection: bool | None) -> tuple[Any, dict[str, np.ndarray]]:
-  """(config, tensors) of a transformers CLIP tower folder: config.json + model.safetensors.
+def load_checkpoint(directory: str | os.PathLike, config_class: Any, projection_name: str,
+                    with_projection: bool | None,
+                    params_from_tensors: Callable[[Any, Mapping[str, np.ndarray], Path], dict]
+                    ) -> tuple[Any, dict]:
+  """(config, Flax params) of a transformers CLIP tower folder: config.json + model.safetensors.
 
   Args:
     directory: the model folder.
     config_class: the tower's config dataclass (with `from_dict(raw, source, with_projection)`).
     projection_name: the projection's tensor name.
-    with_projection: load the projection; None decides from the config's `architectures`, or,
-      when that is absent, from whether the weights hold `projection_name`.
+    with_projection: load the tower with its projection (CLIP*ModelWithProjection); None
+      decides from the config's `architectures`, or, when that is absent, from whether the
+      weights hold `projection_name`.
+    params_from_tensors: the tower's (config, tensors, source) -> Flax params.
   """
   directory = Path(directory)
   config_path = directory / "config.json"
@@ -171,4 +189,19 @@ def read_checkpoint(directory: str | os.PathLike, config_class: Any, projection_
   tensors = safetensors_io.read_safetensors(safetensors_io.find_weight_files(directory))
   if with_projection is None and "architectures" not in raw_config:
     with_projection = projection_name in tensors
-  return config_class.from_dict(raw_config, config_path, with_projection), tensors
+  config = config_class.from_dict(raw_config, config_path, with_projection)
+  return config, params_from_tensors(config, tensors, directory)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Tower:
+  """A loaded tower: its config and Flax params. Calling it on a batch runs the tower's
+  compiled forward pass, which a subclass names (`forward(config, params, inputs)`) together
+  with the dtype its inputs take."""
+  config: Any
+  params: Any
+  forward: ClassVar[Callable[[Any, Any, jax.Array], Any]]
+  input_dtype: ClassVar[Any]
+
+  def __call__(self, inputs) -> Any:
+    return self.forward(self.config, self.params, jnp.asarray(inputs, self.input_dtype))

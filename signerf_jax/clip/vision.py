@@ -55,11 +55,8 @@ class CLIPVisionConfig:
                 with_projection: bool | None = None) -> "CLIPVisionConfig":
     """From a transformers `config.json` (or CLIPConfig's `vision_config`); unknown keys are
     ignored. `with_projection` None reads it from `architectures`."""
-    if with_projection is None:
-      with_projection = "CLIPVisionModelWithProjection" in config.get("architectures", ())
-    names = {field.name for field in dataclasses.fields(cls)} - {"with_projection"}
-    result = cls(**{name: config[name] for name in names if name in config},
-                 with_projection=with_projection)
+    result = transformer.tower_config(cls, config, with_projection,
+                                      "CLIPVisionModelWithProjection")
     for field in ("image_size", "patch_size"):
       if not isinstance(getattr(result, field), int):
         raise InputError(f"only square images and patches (an integer) are implemented, got "
@@ -181,38 +178,23 @@ def _to_flax(name: str, value: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]
 
 def params_from_tensors(config: CLIPVisionConfig, tensors: Mapping[str, np.ndarray],
                         source: str | os.PathLike) -> dict:
-  """Flax params from a transformers state dict, after checking every name and shape.
-
-  Args:
-    config: the model the tensors must fit.
-    tensors: checkpoint name -> array, with or without the `vision_model.` prefix (only the
-      vision tower's tensors: split a CLIPModel's state dict first).
-    source: the checkpoint, named in errors.
-  """
+  """Flax params for `config` from the vision tower's tensors of a transformers state dict
+  (split a CLIPModel's first; names with or without the `vision_model.` prefix), checked as
+  `transformer.params_from_tensors` checks them."""
   return transformer.params_from_tensors(functools.partial(expected_shapes, config), tensors,
                                         VISION_MODEL_PREFIX, source, _to_flax)
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class VisionEncoder:
+class VisionEncoder(transformer.Tower):
   """A loaded image encoder: call it on [B, S, S, C] preprocessed pixels."""
-
-  config: CLIPVisionConfig
-  params: Any
-
-  def __call__(self, pixel_values) -> CLIPVisionOutput:
-    return encode(self.config, self.params, jnp.asarray(pixel_values, jnp.float32))
+  forward = staticmethod(encode)
+  input_dtype = jnp.float32
 
 
 def load_vision_encoder(directory: str | os.PathLike, with_projection: bool | None = None
                         ) -> VisionEncoder:
-  """A CLIPVisionModel(WithProjection) folder: config.json + model.safetensors.
-
-  Args:
-    directory: the model folder.
-    with_projection: load as CLIPVisionModelWithProjection; None decides from the config's
-      `architectures`, or, when that is absent, from whether the weights hold a projection.
-  """
-  config, tensors = transformer.read_checkpoint(directory, CLIPVisionConfig, PROJECTION_NAME,
-                                                with_projection)
-  return VisionEncoder(config, params_from_tensors(config, tensors, directory))
+  """A CLIPVisionModel folder (config.json + model.safetensors), as
+  CLIPVisionModelWithProjection when `with_projection` (None: see
+  `transformer.load_checkpoint`)."""
+  return VisionEncoder(*transformer.load_checkpoint(directory, CLIPVisionConfig, PROJECTION_NAME,
+                                                    with_projection, params_from_tensors))

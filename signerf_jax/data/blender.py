@@ -41,42 +41,13 @@ def read_capture(root: str | os.PathLike) -> Capture:
     if split == "eval" and not path.is_file():
       source_splits[split] = ()
       continue
-    meta = files.read_json(path)
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames:
-      raise InputError("missing or empty (a non-empty list of frames is required)", path,
-                       "frames")
-    angle = meta.get("camera_angle_x")
-    if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not 0 < angle < np.pi:
-      raise InputError(f"must be a horizontal field of view in (0, pi) radians, got {angle!r}",
-                       path, "camera_angle_x")
-    first_index, missing = len(names), []
-    for index, frame in enumerate(frames):
-      field = f"frames[{index}]"
-      if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
-        raise InputError("missing (the image's path is required)", path, f"{field}.file_path")
-      relative = Path(frame["file_path"])
-      relative = relative if relative.suffix else relative.with_suffix(".png")
-      if not (root / relative).is_file():
-        if split_name == "train":
-          raise InputError(f"image file not found: {root / relative}", path,
-                           f"{field}.file_path")
-        missing.append(relative.as_posix())
-        continue
-      if "transform_matrix" not in frame:
-        raise InputError("missing", path, f"{field}.transform_matrix")
-      camera_to_world.append(poses_lib.check_camera_to_world(
-          frame["transform_matrix"], path, f"{field}.transform_matrix"))
-      view_files.append(ViewFiles(image=root / relative, label=f"{path.name}: {field}"))
-      names.append(relative.as_posix())
-      angles.append(angle)
-    source_splits[split] = tuple(range(first_index, len(names)))
-    if missing:
-      listed = ", ".join(missing[:MISSING_FILES_LISTED])
-      more = f" and {len(missing) - MISSING_FILES_LISTED} more" if len(
-          missing) > MISSING_FILES_LISTED else ""
-      warnings.warn(f"{path}: skipped {len(missing)} frames whose images are missing: "
-                    f"{listed}{more}", stacklevel=3)
+    split_files, split_names, split_poses, angle = _read_transforms_file(
+        root, path, skip_missing=split_name == "test")
+    source_splits[split] = tuple(range(len(names), len(names) + len(split_names)))
+    view_files += split_files
+    names += split_names
+    camera_to_world += split_poses
+    angles += [angle] * len(split_names)
 
   height, width = files.read_image(view_files[0].image).shape[:2]
   focal = 0.5 * width / np.tan(0.5 * np.asarray(angles))
@@ -89,3 +60,48 @@ def read_capture(root: str | os.PathLike) -> Capture:
                      f"Blender's [-{SCENE_HALF_EXTENT}, {SCENE_HALF_EXTENT}]^3 box")
   return Capture(root=root, cameras=cameras, names=tuple(names), files=tuple(view_files),
                  source_splits=source_splits, frame=frame, kind="bounded", format="blender")
+
+
+def _read_transforms_file(root: Path, path: Path, skip_missing: bool
+                          ) -> tuple[list[ViewFiles], list[str], list[np.ndarray], float]:
+  """One split's file: its views' files, names and [3, 4] camera-to-world poses, and its
+  horizontal field of view (radians).
+
+  A frame whose image is missing is an error, or, with `skip_missing`, left out and named in
+  one warning.
+  """
+  meta = files.read_json(path)
+  frames = meta.get("frames") if isinstance(meta, dict) else None
+  if not isinstance(frames, list) or not frames:
+    raise InputError("missing or empty (a non-empty list of frames is required)", path, "frames")
+  angle = meta.get("camera_angle_x")
+  if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not 0 < angle < np.pi:
+    raise InputError(f"must be a horizontal field of view in (0, pi) radians, got {angle!r}",
+                     path, "camera_angle_x")
+  view_files, names, camera_to_world, missing = [], [], [], []
+  for index, frame in enumerate(frames):
+    field = f"frames[{index}]"
+    if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+      raise InputError("missing (the image's path is required)", path, f"{field}.file_path")
+    relative = Path(frame["file_path"])
+    relative = relative if relative.suffix else relative.with_suffix(".png")
+    if not (root / relative).is_file():
+      if not skip_missing:
+        raise InputError(f"image file not found: {root / relative}", path, f"{field}.file_path")
+      missing.append(relative.as_posix())
+      continue
+    if "transform_matrix" not in frame:
+      raise InputError("missing", path, f"{field}.transform_matrix")
+    camera_to_world.append(poses_lib.check_camera_to_world(
+        frame["transform_matrix"], path, f"{field}.transform_matrix"))
+    view_files.append(ViewFiles(image=root / relative, label=f"{path.name}: {field}"))
+    names.append(relative.as_posix())
+  if missing:
+    listed = ", ".join(missing[:MISSING_FILES_LISTED])
+    more = f" and {len(missing) - MISSING_FILES_LISTED} more" if len(
+        missing) > MISSING_FILES_LISTED else ""
+    # Level 4 is load.load_dataset (through read_capture and load.read_capture): the warning
+    # names the user's call.
+    warnings.warn(f"{path}: skipped {len(missing)} frames whose images are missing: "
+                  f"{listed}{more}", stacklevel=4)
+  return view_files, names, camera_to_world, angle

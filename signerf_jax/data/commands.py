@@ -1,4 +1,5 @@
-"""`signerf synthesize`: write a synthetic scene with ground truth in nerfstudio format."""
+"""`signerf synthesize`: write a synthetic scene with ground truth in nerfstudio format, and the
+gin bindings it was made with (config.gin) beside it."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import argparse
 import time
 
 from signerf_jax import configs
-from signerf_jax.data import synthetic
+from signerf_jax.data import synthetic, synthetic_render
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,7 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
   configs.parse_gin(args.gin_file, args.gin_param)
   start = time.perf_counter()
-  dataset, scene = synthetic.generate(args.out, seed=args.seed)
+  dataset, scene = synthetic_render.generate(args.out, seed=args.seed,
+                                             settings=configs.build(synthetic.SceneSettings),
+                                             rig=configs.build(synthetic_render.CameraRig))
+  configs.save_gin_config(args.out)
   seconds = time.perf_counter() - start
   print(f"signerf synthesize: {dataset.num_images} views of {dataset.width}x{dataset.height} px, "
         f"{len(scene.objects)} objects (seed {args.seed}) written to {args.out} in "

@@ -141,13 +141,7 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
   Raises:
     InputError: naming the file and field, or the parameter, at fault.
   """
-  if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
-    raise InputError(f"must be a positive integer, got {downscale!r}", field="downscale")
-  if scene_kind is not None and scene_kind not in SCENE_KINDS:
-    raise InputError(f"must be one of {SCENE_KINDS}, got {scene_kind!r}", field="scene_kind")
-  if scene_radius is not None and not (isinstance(scene_radius, (int, float))
-                                       and 0 < scene_radius < np.inf):
-    raise InputError(f"must be a positive number, got {scene_radius!r}", field="scene_radius")
+  _check_options(downscale, scene_kind, scene_radius)
   capture = read_capture(root, downscale)
   frame = scene_frame(capture, scene_kind=scene_kind, scene_center=scene_center,
                       scene_radius=scene_radius)
@@ -158,16 +152,8 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
   background = (capture.background_color if capture.background_color is not None
                 else np.asarray(background_color, np.float32))
   reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
-  chosen = [capture.files[index] for index in selected]
-  color_and_alpha = reader.read_all(
-      chosen, "image", lambda p: views.read_color_and_alpha(p, background), "area", 0.0)
-  images, alphas = color_and_alpha[..., :3], color_and_alpha[..., 3]
-  masks = reader.read_all(chosen, "mask", views.read_mask, "area", 1.0)
-  depths = reader.read_all(chosen, "depth",
-                           lambda p: views.read_depth(p, capture.depth_unit_scale), "nearest",
-                           0.0)
-  read_object_ids = views.read_silhouette if capture.silhouette_masks else views.read_object_ids
-  object_masks = reader.read_all(chosen, "object_mask", read_object_ids, "nearest", 0)
+  images, alphas, masks, depths, object_masks = reader.read_views(
+      [capture.files[index] for index in selected], background)
   world_from_source = frame.world_from_source @ capture.file_from_source
   return Dataset(
       images=images,
@@ -188,6 +174,17 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
   )
 
 
+def _check_options(downscale, scene_kind, scene_radius) -> None:
+  """Rejects a `downscale`, `scene_kind` or `scene_radius` `load_dataset` cannot take."""
+  if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
+    raise InputError(f"must be a positive integer, got {downscale!r}", field="downscale")
+  if scene_kind is not None and scene_kind not in SCENE_KINDS:
+    raise InputError(f"must be one of {SCENE_KINDS}, got {scene_kind!r}", field="scene_kind")
+  if scene_radius is not None and not (isinstance(scene_radius, (int, float))
+                                       and 0 < scene_radius < np.inf):
+    raise InputError(f"must be a positive number, got {scene_radius!r}", field="scene_radius")
+
+
 @dataclasses.dataclass(frozen=True)
 class _ViewReader:
   """Reads the chosen views' files at the cameras' size, from prepared copies where they exist."""
@@ -195,6 +192,28 @@ class _ViewReader:
   capture: Capture
   downscale: int
   target_size: tuple[int, int]
+
+  def read_views(self, chosen: Sequence[ViewFiles], background: np.ndarray):
+    """The chosen views' pixels at the cameras' size.
+
+    Returns:
+      images: [N, H, W, 3] float32 RGB in [0, 1], RGBA images composited on `background` ([3]).
+      alphas: [N, H, W] float32 the images' opacity (1 for images without alpha).
+      masks, depths, object_masks: [N, H, W] training masks in [0, 1], z-depths in the source's
+        units and object ids; each None when no view has one (views without get 1, 0 and 0).
+    """
+    capture = self.capture
+    color_and_alpha = self.read_all(
+        chosen, "image", lambda p: views.read_color_and_alpha(p, background), "area", 0.0)
+    images, alphas = color_and_alpha[..., :3], color_and_alpha[..., 3]
+    masks = self.read_all(chosen, "mask", views.read_mask, "area", 1.0)
+    depths = self.read_all(chosen, "depth",
+                           lambda p: views.read_depth(p, capture.depth_unit_scale), "nearest",
+                           0.0)
+    read_object_ids = (views.read_silhouette if capture.silhouette_masks
+                       else views.read_object_ids)
+    object_masks = self.read_all(chosen, "object_mask", read_object_ids, "nearest", 0)
+    return images, alphas, masks, depths, object_masks
 
   def read_all(self, chosen: Sequence[ViewFiles], kind: str, read, method: str, default):
     """[N, H, W(, C)] of each view's file of `kind`, or None when no view has one (views

@@ -1,5 +1,5 @@
-"""nerfstudio `transforms.json` (and instant-NGP-style `transforms_{train,val,test}.json`):
-reader and writer.
+"""nerfstudio `transforms.json` (and instant-NGP-style `transforms_{train,val,test}.json`): the
+format, and its reader (`nerfstudio_writer` writes it).
 
 The format (https://docs.nerf.studio/quickstart/data_conventions.html): OpenGL camera-to-world
 `transform_matrix` per frame, intrinsics `fl_x fl_y cx cy w h` and distortion coefficients at the
@@ -28,7 +28,7 @@ and per frame "object_mask_path": an 8-bit PNG of object ids (0 = none), loaded 
 `Dataset.extras["object_masks"]`.
 
 The scene frame: with `signerf.scene_bounds`, bounds already inside [-1, 1]^3 are kept as they
-are (the file is already normalised, e.g. written by `write_nerfstudio`); others are centred and
+are (the file is already normalised, e.g. written by `nerfstudio_writer`); others are centred and
 scaled so their largest side spans [-1, 1]. near/far default to the range covering the bounds.
 Without it (a plain capture), `frame.estimate_frame` finds it from the cameras.
 """
@@ -37,18 +37,17 @@ from __future__ import annotations
 
 import math
 import os
-import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.camera import DISTORTION_SIZE, Cameras
+from signerf_jax.camera import Cameras
+from signerf_jax.lens import DISTORTION_SIZE
 from signerf_jax.data import poses as poses_lib
-from signerf_jax.data import splits, views
+from signerf_jax.data import splits
 from signerf_jax.data.capture import FILE_KEYS, Capture, ViewFiles
-from signerf_jax.data.dataset import Dataset
 from signerf_jax.data.frame import SCENE_KINDS, SceneFrame
 from signerf_jax.errors import InputError
 
@@ -68,15 +67,9 @@ DISTORTION_SLOTS = {
 }
 CAMERA_MODELS = tuple(DISTORTION_SLOTS)
 FISHEYE_MODELS = ("OPENCV_FISHEYE",)
-# OpenCV's rational terms (k4, k5, k6): only FULL_OPENCV holds them.
-RATIONAL_SLOTS = slice(5, 8)
 DEFAULT_DEPTH_UNIT_SCALE = 1e-3
 # Extensions tried, in order, for a `file_path` given without one (instant-NGP captures).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
-# The writer's per-view files: subfolder and suffix per kind of data.
-IMAGE_FOLDER, MASK_FOLDER, DEPTH_FOLDER, OBJECT_MASK_FOLDER = (
-    "images", "masks", "depths", "object_masks")
-_WRITTEN_FILE_PATTERN = re.compile(r"frame_\d{5}\.(png|exr)")
 
 
 def has_intrinsics(meta: Any) -> bool:
@@ -355,98 +348,3 @@ def _frame_from_extension(extension: dict[str, Any], cameras: Cameras) -> SceneF
         poses_lib.transform_cameras(world_from_file, cameras), *bounds)
   return SceneFrame(extension.get("scene_kind", "bounded"), world_from_file, bounds,
                     float(near), float(far), "signerf block")
-
-
-def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
-                     provenance: dict[str, Any] | None = None) -> Path:
-  """Writes `dataset` in nerfstudio format (poses in its normalised frame); returns the json path.
-
-  Layout: images/frame_00000.png (RGB), masks/*.png (if `dataset.masks`), depths/*.exr (z-depth,
-  if `dataset.depths`), object_masks/*.png (if `dataset.extras["object_masks"]`), and
-  transforms.json with shared intrinsics (per-frame when they differ), the simplest camera model
-  that holds the lens (PINHOLE, OPENCV, OPENCV_FISHEYE, or FULL_OPENCV: see the module docstring),
-  `applied_transform` = `dataset.world_from_source` (so the original frame is not lost) and the
-  signerf block (kind, bounds, background, near/far, `provenance` when given).
-
-  Every file is written atomically. An existing transforms.json is removed first and the new one
-  is written last, so an interrupted run leaves no transforms.json that points at a mix of old
-  and new files; stale `frame_*` files of an earlier, larger dataset are removed at the end.
-  """
-  directory = Path(directory)
-  directory.mkdir(parents=True, exist_ok=True)
-  transforms_path = directory / TRANSFORMS_NAME
-  transforms_path.unlink(missing_ok=True)
-
-  cameras = dataset.cameras
-  camera_model = _camera_model(cameras)
-  distortion = np.asarray(cameras.distortion)
-  intrinsics = {"fl_x": cameras.fx, "fl_y": cameras.fy, "cx": cameras.cx, "cy": cameras.cy}
-  intrinsics.update({key: distortion[:, slot]
-                     for key, slot in DISTORTION_SLOTS[camera_model].items()})
-  intrinsics = {key: np.asarray(values).tolist() for key, values in intrinsics.items()}
-  shared = {key: values[0] for key, values in intrinsics.items()
-            if all(value == values[0] for value in values)}
-  object_masks = dataset.extras.get("object_masks")
-
-  written = []
-  frames = []
-  for index in range(dataset.num_images):
-    name = f"frame_{index:05d}"
-    camera_to_world = np.concatenate(
-        [np.asarray(cameras.camera_to_world[index], np.float64), [[0.0, 0.0, 0.0, 1.0]]])
-    frame = {"file_path": f"{IMAGE_FOLDER}/{name}.png",
-             "transform_matrix": camera_to_world.tolist()}
-    frame.update({key: values[index] for key, values in intrinsics.items() if key not in shared})
-    files.write_image(directory / frame["file_path"], dataset.images[index])
-    if dataset.masks is not None:
-      frame["mask_path"] = f"{MASK_FOLDER}/{name}.png"
-      files.write_image(directory / frame["mask_path"], dataset.masks[index])
-    if dataset.depths is not None:
-      frame["depth_file_path"] = f"{DEPTH_FOLDER}/{name}.exr"
-      files.write_exr(directory / frame["depth_file_path"], dataset.depths[index])
-    if object_masks is not None:
-      frame["object_mask_path"] = f"{OBJECT_MASK_FOLDER}/{name}.png"
-      views.write_object_ids(directory / frame["object_mask_path"], object_masks[index])
-    written += [value for key, value in frame.items() if key.endswith("_path")]
-    frames.append(frame)
-
-  extension = {
-      "scene_kind": dataset.scene_kind,
-      "scene_bounds": np.asarray(dataset.scene_bounds, np.float64).tolist(),
-      "background_color": (None if dataset.background_color is None
-                           else np.asarray(dataset.background_color, np.float64).tolist()),
-      "near": float(dataset.near),
-      "far": float(dataset.far),
-  }
-  if provenance is not None:
-    extension["provenance"] = provenance
-  meta = {
-      "camera_model": camera_model,
-      "w": cameras.width,
-      "h": cameras.height,
-      **shared,
-      "applied_transform": np.asarray(dataset.world_from_source, np.float64)[:3].tolist(),
-      EXTENSION_KEY: extension,
-      "frames": frames,
-  }
-  files.write_json(transforms_path, meta)
-  _remove_stale_frame_files(directory, set(written))
-  return transforms_path
-
-
-def _camera_model(cameras: Cameras) -> str:
-  """The simplest camera model that holds the cameras' lens exactly."""
-  distortion = np.asarray(cameras.distortion)
-  if cameras.fisheye:
-    return "OPENCV_FISHEYE"
-  if np.any(distortion[:, RATIONAL_SLOTS] != 0):
-    return "FULL_OPENCV"
-  return "OPENCV" if np.any(distortion != 0) else "PINHOLE"
-
-
-def _remove_stale_frame_files(directory: Path, keep: set[str]) -> None:
-  """Deletes our own `frame_NNNNN` files that the new transforms.json no longer lists."""
-  for folder in (IMAGE_FOLDER, MASK_FOLDER, DEPTH_FOLDER, OBJECT_MASK_FOLDER):
-    for path in sorted((directory / folder).glob("frame_*")):
-      if _WRITTEN_FILE_PATTERN.fullmatch(path.name) and f"{folder}/{path.name}" not in keep:
-        path.unlink()

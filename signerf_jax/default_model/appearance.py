@@ -18,7 +18,7 @@ Edges are a linear ramp EDGE_WIDTH wide so that 64-pixel renders do not alias ba
 The accent covers at most half of the surface and keeps the base hue, so the base colour stays
 the dominant colour of the object: `metrics.colors.dominant_color` (prompt adherence) recovers it
 from shaded renders. Shading itself (Lambert plus ambient under a white light, which keeps hue)
-is the synthetic renderer's (`signerf_jax.data.synthetic.render`).
+is the synthetic renderer's (`signerf_jax.data.synthetic_render.render`).
 """
 
 from __future__ import annotations

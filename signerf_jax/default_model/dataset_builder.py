@@ -40,7 +40,7 @@ import multiprocessing
 import os
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import gin
 import numpy as np
@@ -52,6 +52,7 @@ from signerf_jax.clip import word_tokenizer
 from signerf_jax.default_model import appearance
 from signerf_jax.default_model import captions
 from signerf_jax.default_model import samples
+from signerf_jax.default_model import scenes
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import colors
 
@@ -123,7 +124,7 @@ class ShardSpec:
             "fingerprint": self.fingerprint}
 
 
-def fingerprint(settings: DataSettings, scene_sampling: samples.SceneSampling,
+def fingerprint(settings: DataSettings, scene_sampling: scenes.SceneSampling,
                 caption_settings: captions.CaptionSettings) -> str:
   """A hash of everything a sample's content depends on (not counts, shard sizes or paths)."""
   content = {
@@ -161,7 +162,7 @@ def sample_attributes(split: str, sample_index: int, catalogue) -> captions.Attr
                              pattern=patterns[(sample_index // len(names)) % len(patterns)])
 
 
-def make_shard_arrays(spec: ShardSpec, scene_sampling: samples.SceneSampling,
+def make_shard_arrays(spec: ShardSpec, scene_sampling: scenes.SceneSampling,
                       caption_settings: captions.CaptionSettings) -> dict[str, np.ndarray]:
   """The stacked arrays of one shard (see the module docstring)."""
   catalogue = scene_sampling.catalogue()
@@ -178,7 +179,7 @@ def make_shard_arrays(spec: ShardSpec, scene_sampling: samples.SceneSampling,
 
 
 def write_shard(directory: str | os.PathLike, spec: ShardSpec,
-                scene_sampling: samples.SceneSampling,
+                scene_sampling: scenes.SceneSampling,
                 caption_settings: captions.CaptionSettings) -> dict[str, Any]:
   """Makes and atomically writes one shard; returns its manifest entry (with timing)."""
   start = time.perf_counter()
@@ -265,49 +266,22 @@ def _manifest(settings, scene_sampling, caption_settings, shard_fingerprint, ent
   }
 
 
-def build_dataset(settings: DataSettings | None = None,
-                  scene_sampling: samples.SceneSampling | None = None,
-                  caption_settings: captions.CaptionSettings | None = None, workers: int = 1,
-                  progress: bool = True) -> dict[str, Any]:
-  """Makes (or completes) the dataset in `settings.output_directory`; returns the manifest.
-
-  Args:
-    settings, scene_sampling, caption_settings: default: the gin-bound values.
-    workers: processes making shards in parallel (1: this process).
-    progress: show a progress bar.
-  """
-  settings = DataSettings() if settings is None else settings
-  scene_sampling = samples.SceneSampling() if scene_sampling is None else scene_sampling
-  caption_settings = captions.CaptionSettings() if caption_settings is None else caption_settings
-  if not settings.output_directory:
-    raise InputError("no output directory given", field="default_model_data.output_directory")
-  directory = Path(settings.output_directory)
-  start = time.perf_counter()
-  shard_fingerprint = fingerprint(settings, scene_sampling, caption_settings)
-  specs = plan_shards(settings, shard_fingerprint)
-  manifest_path = directory / MANIFEST_NAME
+def _previous_entries(manifest_path: Path) -> dict[str, dict[str, Any]]:
+  """An earlier run's shard entries by path ({} without a manifest): the timings of the shards
+  it made are kept when they are not made again."""
   previous = {}
   if manifest_path.is_file():
     for split in files.read_json(manifest_path).get("splits", {}).values():
       for kind in split.values():
         previous.update({shard["path"]: shard for shard in kind["shards"]})
-  entries = {}
-  for spec in specs:
-    entry = _finished(directory, spec, previous)
-    if entry is not None:
-      entries[spec.relative_path] = entry
-  todo = [spec for spec in specs if spec.relative_path not in entries]
+  return previous
 
-  word_tokenizer.WordTokenizer.from_words(captions.vocabulary(), settings.tokenizer_max_length
-                                          ).save(directory / TOKENIZER_FOLDER)
-  configs.save_gin_config(directory)
 
-  def record(entry: dict[str, Any]) -> None:
-    entries[entry["path"]] = entry
-    files.write_json(manifest_path, _manifest(
-        settings, scene_sampling, caption_settings, shard_fingerprint, entries,
-        len(entries) == len(specs), time.perf_counter() - start))
-
+def _write_shards(directory: Path, todo: list[ShardSpec], scene_sampling: scenes.SceneSampling,
+                  caption_settings: captions.CaptionSettings, workers: int, progress: bool,
+                  record: Callable[[dict[str, Any]], None]) -> None:
+  """Makes and writes the shards `todo` in this process (workers <= 1) or in `workers`
+  processes, calling `record` with each shard's manifest entry once it is written."""
   bar = tqdm.tqdm(total=len(todo), desc="default model data shards", unit="shard",
                   disable=not progress)
   if workers <= 1:
@@ -324,10 +298,51 @@ def build_dataset(settings: DataSettings | None = None,
         record(future.result())
         bar.update()
   bar.close()
-  manifest = _manifest(settings, scene_sampling, caption_settings, shard_fingerprint, entries,
-                       len(entries) == len(specs), time.perf_counter() - start)
-  files.write_json(manifest_path, manifest)
-  return manifest
+
+
+def build_dataset(settings: DataSettings | None = None,
+                  scene_sampling: scenes.SceneSampling | None = None,
+                  caption_settings: captions.CaptionSettings | None = None, workers: int = 1,
+                  progress: bool = True) -> dict[str, Any]:
+  """Makes (or completes) the dataset in `settings.output_directory`; returns the manifest.
+
+  Args:
+    settings, scene_sampling, caption_settings: default: the gin-bound values.
+    workers: processes making shards in parallel (1: this process).
+    progress: show a progress bar.
+  """
+  settings = DataSettings() if settings is None else settings
+  scene_sampling = scenes.SceneSampling() if scene_sampling is None else scene_sampling
+  caption_settings = captions.CaptionSettings() if caption_settings is None else caption_settings
+  if not settings.output_directory:
+    raise InputError("no output directory given", field="default_model_data.output_directory")
+  directory = Path(settings.output_directory)
+  start = time.perf_counter()
+  shard_fingerprint = fingerprint(settings, scene_sampling, caption_settings)
+  specs = plan_shards(settings, shard_fingerprint)
+  manifest_path = directory / MANIFEST_NAME
+  previous = _previous_entries(manifest_path)
+  entries = {}
+  for spec in specs:
+    entry = _finished(directory, spec, previous)
+    if entry is not None:
+      entries[spec.relative_path] = entry
+  todo = [spec for spec in specs if spec.relative_path not in entries]
+
+  word_tokenizer.WordTokenizer.from_words(captions.vocabulary(), settings.tokenizer_max_length
+                                          ).save(directory / TOKENIZER_FOLDER)
+  configs.save_gin_config(directory)
+  manifest = lambda: _manifest(settings, scene_sampling, caption_settings, shard_fingerprint,
+                               entries, len(entries) == len(specs), time.perf_counter() - start)
+
+  def record(entry: dict[str, Any]) -> None:
+    entries[entry["path"]] = entry
+    files.write_json(manifest_path, manifest())
+
+  _write_shards(directory, todo, scene_sampling, caption_settings, workers, progress, record)
+  final = manifest()
+  files.write_json(manifest_path, final)
+  return final
 
 
 def read_manifest(directory: str | os.PathLike) -> dict[str, Any]:

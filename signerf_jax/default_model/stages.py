@@ -2,7 +2,7 @@
 
     run = stages.train(run_directory, data, architecture, budget)
 
-Each stage trains in `<run_directory>/<stage>/` (its checkpoint, `training.CHECKPOINT_NAME`)
+Each stage trains in `<run_directory>/<stage>/` (its checkpoint, `checkpoints.CHECKPOINT_NAME`)
 and is skipped once it has done all its steps; a run stops starting new steps at the budget's
 deadline, so training spans as many runs as it needs. What each stage trains and freezes:
 
@@ -34,7 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
+from signerf_jax.default_model import losses
 from signerf_jax.default_model import model as model_lib
+from signerf_jax.default_model import stage_settings
 from signerf_jax.default_model import training
 from signerf_jax.default_model import training_data
 from signerf_jax.diffusion import schedulers
@@ -54,10 +56,10 @@ class TrainingPlan:
   """
 
   seed: int = 0
-  vae: training.VaeStage = dataclasses.field(default_factory=training.VaeStage)
-  unet: training.UNetStage = dataclasses.field(default_factory=training.UNetStage)
-  controlnet: training.ControlNetStage = dataclasses.field(
-      default_factory=training.ControlNetStage)
+  vae: stage_settings.VaeStage = dataclasses.field(default_factory=stage_settings.VaeStage)
+  unet: stage_settings.UNetStage = dataclasses.field(default_factory=stage_settings.UNetStage)
+  controlnet: stage_settings.ControlNetStage = dataclasses.field(
+      default_factory=stage_settings.ControlNetStage)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,9 +101,103 @@ def latent_scaling_factor(components: model_lib.Components, vae_params, data, vi
   return float(1.0 / means.std())
 
 
-def _history(state: training.TrainState) -> dict[str, np.ndarray]:
+def _stage_record(state: training.TrainState, settings: stage_settings.StageSettings) -> dict:
+  """What `TrainedModel` reports of a stage: steps, finished, history and wall_seconds."""
   steps = int(state.step)
-  return {name: np.asarray(values[:steps]) for name, values in state.history.items()}
+  return {"steps": steps, "finished": steps >= settings.num_steps,
+          "history": {name: np.asarray(values[:steps]) for name, values in state.history.items()},
+          "wall_seconds": float(state.wall_seconds)}
+
+
+def _trained_model(architecture: model_lib.Architecture, params: dict[str, Any],
+                   records: dict[str, dict]) -> TrainedModel:
+  """The `TrainedModel` of the stages run so far ({stage: `_stage_record`})."""
+  field = lambda key: {name: record[key] for name, record in records.items()}
+  return TrainedModel(architecture, field("steps"), field("finished"), params, field("history"),
+                      field("wall_seconds"))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+  """What every stage of one `train` call reads (`train`'s arguments), and each component's
+  random number generator (seeded by the plan's seed and the component)."""
+
+  directory: Path
+  data: training_data.SplitData
+  plan: TrainingPlan
+  budget: training.RunBudget
+  initial: dict[str, Any] | None
+  rngs: dict[str, np.random.Generator]
+
+  def start_from(self, name: str, fresh: Callable[[], Any]) -> Callable[[], Any]:
+    """`fresh`, or the given initial parameters once they are checked to fit it."""
+    if self.initial is None or name not in self.initial:
+      return fresh
+    shapes = lambda params: {path: np.shape(leaf) for path, leaf in
+                             traverse_util.flatten_dict(params).items()}
+    if shapes(jax.eval_shape(fresh)) != shapes(self.initial[name]):
+      raise InputError(f"the initial {name} parameters do not fit the architecture",
+                       field="default_model_architecture")
+    return lambda: self.initial[name]
+
+  def vae_batches(self, settings: stage_settings.VaeStage) -> Callable[[int], Any]:
+    """step -> that step's `training_data.vae_batch` of the VAE stage."""
+    return lambda step: training_data.vae_batch(
+        self.data, training_data.step_rng(settings.seed, "vae", step), settings.batch_size,
+        settings.masked_fraction)
+
+  def diffusion_batches(self, settings: stage_settings.DiffusionStage, stage: str
+                        ) -> Callable[[int], Any]:
+    """step -> that step's `training_data.diffusion_batch` of the UNet or ControlNet stage."""
+    return lambda step: jax.tree.map(jnp.asarray, training_data.diffusion_batch(
+        self.data, training_data.step_rng(settings.seed, stage, step), settings.sheets_per_batch,
+        settings.singles_per_batch, settings.mask_kind_weights, settings.sheet_mode_weights,
+        settings.caption_dropout))
+
+
+def _train_vae(run: _Run, components: model_lib.Components) -> training.TrainState:
+  """Runs (or resumes) the VAE stage."""
+  settings = run.plan.vae
+  return training.run_stage(
+      "vae", run.directory / "vae", settings,
+      run.start_from("vae", lambda: model_lib.init_vae(components, run.rngs["vae"])),
+      {}, losses.vae_loss_fn(components, settings), run.vae_batches(settings),
+      losses.VAE_METRICS, run.budget)
+
+
+def _train_unet(run: _Run, components: model_lib.Components,
+                scheduler: schedulers.SchedulerConfig, vae_params) -> training.TrainState:
+  """Runs (or resumes) the UNet stage: UNet and text encoder, with the ControlNet when
+  `joint_controlnet`, on the frozen VAE."""
+  settings = run.plan.unet
+
+  def start():
+    params = {
+        "unet": run.start_from("unet", lambda: model_lib.init_unet(
+            components, run.rngs["unet"]))(),
+        "text_encoder": run.start_from("text_encoder", lambda: model_lib.init_text_encoder(
+            components, run.rngs["text_encoder"]))()}
+    if settings.joint_controlnet:
+      params["controlnet"] = run.start_from("controlnet", lambda: model_lib.init_controlnet(
+          components, params["unet"], run.rngs["controlnet"]))()
+    return params
+
+  return training.run_stage(
+      "unet", run.directory / "unet", settings, start, {"vae": vae_params},
+      losses.diffusion_loss_fn(components, scheduler, settings),
+      run.diffusion_batches(settings, "unet"), losses.DIFFUSION_METRICS, run.budget)
+
+
+def _train_controlnet(run: _Run, components: model_lib.Components,
+                      scheduler: schedulers.SchedulerConfig, params: dict[str, Any]
+                      ) -> training.TrainState:
+  """Runs (or resumes) the ControlNet stage from `params["controlnet"]`, the others frozen."""
+  settings = run.plan.controlnet
+  return training.run_stage(
+      "controlnet", run.directory / "controlnet", settings,
+      lambda: {"controlnet": params["controlnet"]}, params,
+      losses.diffusion_loss_fn(components, scheduler, settings),
+      run.diffusion_batches(settings, "controlnet"), losses.DIFFUSION_METRICS, run.budget)
 
 
 def train(run_directory: str | os.PathLike, data: training_data.SplitData,
@@ -122,82 +218,30 @@ def train(run_directory: str | os.PathLike, data: training_data.SplitData,
       are gone (or, given only the VAE, a new diffusion model is trained on it).
   """
   plan = TrainingPlan() if plan is None else plan
-  run_directory = Path(run_directory)
+  run = _Run(Path(run_directory), data, plan, budget, initial, {
+      name: np.random.default_rng([plan.seed, index])
+      for index, name in enumerate(("vae", "unet", "text_encoder", "controlnet"))})
   components = model_lib.build(architecture, data.tokenizer.vocab_size)
-  rngs = {name: np.random.default_rng([plan.seed, index])
-          for index, name in enumerate(("vae", "unet", "text_encoder", "controlnet"))}
-
-  def start_from(name: str, fresh: Callable[[], Any]) -> Callable[[], Any]:
-    """`fresh`, or the given initial parameters once they are checked to fit it."""
-    if initial is None or name not in initial:
-      return fresh
-    shapes = lambda params: {path: np.shape(leaf) for path, leaf in
-                             traverse_util.flatten_dict(params).items()}
-    if shapes(jax.eval_shape(fresh)) != shapes(initial[name]):
-      raise InputError(f"the initial {name} parameters do not fit the architecture",
-                       field="default_model_architecture")
-    return lambda: initial[name]
-
-  steps, finished, histories, wall_seconds = {}, {}, {}, {}
-
-  def record(name, state, settings):
-    steps[name] = int(state.step)
-    finished[name] = steps[name] >= settings.num_steps
-    histories[name] = _history(state)
-    wall_seconds[name] = float(state.wall_seconds)
-
-  def result(params):
-    return TrainedModel(architecture, steps, finished, params, histories, wall_seconds)
-
-  vae_state = training.run_stage(
-      "vae", run_directory / "vae", plan.vae,
-      start_from("vae", lambda: model_lib.init_vae(components, rngs["vae"])),
-      {}, training.vae_loss_fn(components, plan.vae),
-      lambda step: training_data.vae_batch(data, training_data.step_rng(plan.vae.seed, "vae", step),
-                                           plan.vae.batch_size, plan.vae.masked_fraction),
-      training.VAE_METRICS, budget)
-  record("vae", vae_state, plan.vae)
+  vae_state = _train_vae(run, components)
+  records = {"vae": _stage_record(vae_state, plan.vae)}
   params = {"vae": jax.device_get(vae_state.ema_params)}
-  if not finished["vae"]:
-    return result(params)
+  if not records["vae"]["finished"]:
+    return _trained_model(architecture, params, records)
 
   architecture = dataclasses.replace(architecture, vae_scaling_factor=latent_scaling_factor(
       components, params["vae"], data, plan.vae.scaling_views))
   components = model_lib.build(architecture, data.tokenizer.vocab_size)
   scheduler = schedulers.scheduler_config(architecture.scheduler_config())
-
-  def diffusion_batches(settings, stage):
-    return lambda step: jax.tree.map(jnp.asarray, training_data.diffusion_batch(
-        data, training_data.step_rng(settings.seed, stage, step), settings.sheets_per_batch,
-        settings.singles_per_batch, settings.mask_kind_weights, settings.sheet_mode_weights,
-        settings.caption_dropout))
-
-  def unet_stage_start():
-    start = {"unet": start_from("unet", lambda: model_lib.init_unet(components, rngs["unet"]))(),
-             "text_encoder": start_from("text_encoder", lambda: model_lib.init_text_encoder(
-                 components, rngs["text_encoder"]))()}
-    if plan.unet.joint_controlnet:
-      start["controlnet"] = start_from("controlnet", lambda: model_lib.init_controlnet(
-          components, start["unet"], rngs["controlnet"]))()
-    return start
-
-  unet_state = training.run_stage(
-      "unet", run_directory / "unet", plan.unet, unet_stage_start, {"vae": params["vae"]},
-      training.diffusion_loss_fn(components, scheduler, plan.unet),
-      diffusion_batches(plan.unet, "unet"), training.DIFFUSION_METRICS, budget)
-  record("unet", unet_state, plan.unet)
+  unet_state = _train_unet(run, components, scheduler, params["vae"])
+  records["unet"] = _stage_record(unet_state, plan.unet)
   params.update(jax.device_get(unet_state.ema_params))
   if "controlnet" not in params:
-    params["controlnet"] = start_from("controlnet", lambda: model_lib.init_controlnet(
-        components, params["unet"], rngs["controlnet"]))()
-  if not finished["unet"]:
-    return result(params)
+    params["controlnet"] = run.start_from("controlnet", lambda: model_lib.init_controlnet(
+        components, params["unet"], run.rngs["controlnet"]))()
+  if not records["unet"]["finished"]:
+    return _trained_model(architecture, params, records)
 
-  controlnet_state = training.run_stage(
-      "controlnet", run_directory / "controlnet", plan.controlnet,
-      lambda: {"controlnet": params["controlnet"]}, params,
-      training.diffusion_loss_fn(components, scheduler, plan.controlnet),
-      diffusion_batches(plan.controlnet, "controlnet"), training.DIFFUSION_METRICS, budget)
-  record("controlnet", controlnet_state, plan.controlnet)
+  controlnet_state = _train_controlnet(run, components, scheduler, params)
+  records["controlnet"] = _stage_record(controlnet_state, plan.controlnet)
   params.update(jax.device_get(controlnet_state.ema_params))
-  return result(params)
+  return _trained_model(architecture, params, records)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 
 import flax.linen as nn
-import gin
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -22,10 +21,10 @@ from jax import lax
 from signerf_jax.diffusion.layers import Conv2d, Dtype, GroupNorm, LayerNorm, Linear
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class AttentionOptions:
-  """How attention is evaluated (results agree to float rounding; speed and memory differ).
+  """How attention is evaluated (results agree to float rounding; speed and memory differ;
+  gin: `AttentionOptions.<field>`).
 
   Attributes:
     query_chunk_size: queries per block in the chunked path; the live score block of one head is

@@ -4,19 +4,24 @@ Blocks take the parsed config and their index and derive channels, heads and lay
 exactly as diffusers' `get_down_block` / `get_mid_block` / `get_up_block` calls do. Input
 channel counts are never configured: Flax infers them from the arrays, so skip concatenations
 need no bookkeeping. Layout is NHWC throughout (see `layers`).
+
+`Backbone` is what the UNet and the ControlNet have in common: the time embedding (with SDXL's
+text_time conditioning), the input convolution, and the down path with its mid block.
 """
 
 from __future__ import annotations
+
+import math
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from signerf_jax.diffusion import model_configs
+from signerf_jax.diffusion import model_configs, model_options
 from signerf_jax.diffusion.attention import AttentionOptions, Transformer2D
-from signerf_jax.diffusion.layers import (Downsample2D, Dtype, ResnetBlock2D, TimestepEmbedding,
-                                          Upsample2D, timestep_embedding)
+from signerf_jax.diffusion.layers import Conv2d, Dtype, Linear
+from signerf_jax.diffusion.resnet import Downsample2D, ResnetBlock2D, Upsample2D
 from signerf_jax.errors import InputError
 
 
@@ -33,53 +38,32 @@ class ControlNetResiduals:
   mid: jax.Array
 
 
-def embed_time(config: model_configs.BackboneConfig, timesteps: jax.Array, batch: int,
-               text_embeds: jax.Array | None, time_ids: jax.Array | None,
-               compute_dtype: Dtype) -> jax.Array:
-  """The [B, time_embedding_dim] embedding of the timesteps (plus SDXL's text_time embedding).
-
-  Must be called inside the compact method of the UNet or ControlNet: it creates their
-  `time_embedding` and `add_embedding` submodules.
-
-  Args:
-    timesteps: scalar or [B] (integer or float) diffusion timesteps.
-    text_embeds: [B, pooled_dim] pooled text embedding (SDXL only).
-    time_ids: [B, 6] original size, crop offset and target size (SDXL only).
-  """
-  timesteps = jnp.broadcast_to(jnp.reshape(jnp.asarray(timesteps, jnp.float32), (-1,)), (batch,))
-  sinusoid = timestep_embedding(timesteps, config.block_out_channels[0], config.flip_sin_to_cos,
-                                config.freq_shift)
-  embedding = TimestepEmbedding(config.time_embedding_dim, compute_dtype,
-                                name="time_embedding")(sinusoid)
-  if config.addition_embed_type == "text_time":
-    if text_embeds is None or time_ids is None:
-      raise InputError("this model (addition_embed_type 'text_time', SDXL) needs text_embeds "
-                       "and time_ids", field="text_embeds" if text_embeds is None else "time_ids")
-    time_ids_embedding = timestep_embedding(
-        jnp.reshape(time_ids, (-1,)), config.addition_time_embed_dim, config.flip_sin_to_cos,
-        config.freq_shift).reshape(batch, -1)
-    added = jnp.concatenate([text_embeds.astype(jnp.float32), time_ids_embedding], axis=-1)
-    embedding = embedding + TimestepEmbedding(config.time_embedding_dim, compute_dtype,
-                                              name="add_embedding")(added)
+def timestep_embedding(timesteps: jax.Array, dim: int, flip_sin_to_cos: bool, freq_shift: float,
+                       max_period: float = 10000.0) -> jax.Array:
+  """Sinusoidal embedding of [N] timesteps -> [N, dim] float32 (get_timestep_embedding)."""
+  half = dim // 2
+  exponent = -math.log(max_period) * jnp.arange(half, dtype=jnp.float32) / (half - freq_shift)
+  angles = jnp.asarray(timesteps, jnp.float32)[:, None] * jnp.exp(exponent)[None, :]
+  sin, cos = jnp.sin(angles), jnp.cos(angles)
+  embedding = jnp.concatenate([cos, sin] if flip_sin_to_cos else [sin, cos], axis=-1)
+  if dim % 2:
+    embedding = jnp.pad(embedding, ((0, 0), (0, 1)))
   return embedding
 
 
-def example_inputs(config: model_configs.BackboneConfig, batch: int = 1
-                   ) -> dict[str, jax.ShapeDtypeStruct]:
-  """Abstract UNet/ControlNet inputs of the smallest valid size (for shape inference)."""
-  size = 2 ** (len(config.block_out_channels) - 1)
-  inputs = dict(sample=jax.ShapeDtypeStruct((batch, size, size, config.in_channels), jnp.float32),
-                timesteps=jax.ShapeDtypeStruct((batch,), jnp.float32),
-                encoder_hidden_states=jax.ShapeDtypeStruct(
-                    (batch, 1, config.cross_attention_dim), jnp.float32))
-  if config.addition_embed_type == "text_time":
-    pooled = config.projection_class_embeddings_input_dim - 6 * config.addition_time_embed_dim
-    inputs["text_embeds"] = jax.ShapeDtypeStruct((batch, pooled), jnp.float32)
-    inputs["time_ids"] = jax.ShapeDtypeStruct((batch, 6), jnp.float32)
-  return inputs
+class TimestepEmbedding(nn.Module):
+  """linear_1 -> SiLU -> linear_2 (diffusers' TimestepEmbedding)."""
+  features: int
+  compute_dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    x = nn.silu(Linear(self.features, name="linear_1", compute_dtype=self.compute_dtype)(x))
+    return Linear(self.features, name="linear_2", compute_dtype=self.compute_dtype)(x)
 
 
 class _BlockBase(nn.Module):
+  """A down, mid or up block: its config and index, and the layers it stacks."""
   config: model_configs.BackboneConfig
   index: int
   attention: AttentionOptions = AttentionOptions()
@@ -107,7 +91,7 @@ class DownBlock(_BlockBase):
                ) -> tuple[jax.Array, tuple[jax.Array, ...]]:
     config, index = self.config, self.index
     channels = config.block_out_channels[index]
-    has_attention = config.down_block_types[index] == model_configs.CROSS_ATTENTION_DOWN
+    has_attention = config.down_block_types[index] == model_options.CROSS_ATTENTION_DOWN
     skips = []
     for layer in range(config.layers_per_block[index]):
       x = self.resnet(f"resnets_{layer}", channels)(x, time_embedding)
@@ -135,7 +119,7 @@ class MidBlock(_BlockBase):
     channels = config.block_out_channels[index]
     scale = config.mid_block_scale_factor
     x = self.resnet("resnets_0", channels, scale)(x, time_embedding)
-    if config.mid_block_type == model_configs.CROSS_ATTENTION_MID:
+    if config.mid_block_type == model_options.CROSS_ATTENTION_MID:
       x = self.transformer("attentions_0", channels, config.num_attention_heads[index],
                            config.transformer_layers_per_block[index])(x, context)
       x = self.resnet("resnets_1", channels, scale)(x, time_embedding)
@@ -156,7 +140,7 @@ class UpBlock(_BlockBase):
     config, index = self.config, self.index
     block = len(config.block_out_channels) - 1 - index  # the matching down block
     channels = config.block_out_channels[block]
-    has_attention = config.up_block_types[index] == model_configs.CROSS_ATTENTION_UP
+    has_attention = config.up_block_types[index] == model_options.CROSS_ATTENTION_UP
     for layer, skip in enumerate(reversed(skips)):
       x = jnp.concatenate([x, skip], axis=-1)
       x = self.resnet(f"resnets_{layer}", channels)(x, time_embedding)
@@ -166,3 +150,80 @@ class UpBlock(_BlockBase):
     if upsample_size is not None:
       x = Upsample2D(channels, self.compute_dtype, name="upsamplers_0")(x, upsample_size)
     return x
+
+
+class Backbone(nn.Module):
+  """The encoder half of the UNet and the ControlNet (configured by their `BackboneConfig`).
+
+  Its methods create submodules under diffusers' names (time_embedding, add_embedding, conv_in,
+  down_blocks_<i>, mid_block; the methods' own names differ, as Flax requires), so a subclass
+  calls them from its compact `__call__`.
+  """
+  config: model_configs.BackboneConfig
+  attention: AttentionOptions = AttentionOptions()
+  compute_dtype: Dtype = jnp.float32
+
+  def embed_time(self, timesteps: jax.Array, batch: int, text_embeds: jax.Array | None,
+                 time_ids: jax.Array | None) -> jax.Array:
+    """The [B, time_embedding_dim] embedding of the timesteps (plus SDXL's text_time embedding).
+
+    Args:
+      timesteps: scalar or [B] (integer or float) diffusion timesteps.
+      text_embeds: [B, pooled_dim] pooled text embedding (SDXL only).
+      time_ids: [B, 6] original size, crop offset and target size (SDXL only).
+    """
+    config, compute_dtype = self.config, self.compute_dtype
+    timesteps = jnp.broadcast_to(jnp.reshape(jnp.asarray(timesteps, jnp.float32), (-1,)),
+                                 (batch,))
+    sinusoid = timestep_embedding(timesteps, config.block_out_channels[0],
+                                  config.flip_sin_to_cos, config.freq_shift)
+    embedding = TimestepEmbedding(config.time_embedding_dim, compute_dtype,
+                                  name="time_embedding")(sinusoid)
+    if config.addition_embed_type == "text_time":
+      if text_embeds is None or time_ids is None:
+        raise InputError("this model (addition_embed_type 'text_time', SDXL) needs text_embeds "
+                         "and time_ids", field="text_embeds" if text_embeds is None else "time_ids")
+      time_ids_embedding = timestep_embedding(
+          jnp.reshape(time_ids, (-1,)), config.addition_time_embed_dim, config.flip_sin_to_cos,
+          config.freq_shift).reshape(batch, -1)
+      added = jnp.concatenate([text_embeds.astype(jnp.float32), time_ids_embedding], axis=-1)
+      embedding = embedding + TimestepEmbedding(config.time_embedding_dim, compute_dtype,
+                                                name="add_embedding")(added)
+    return embedding
+
+  def input_convolution(self, sample: jax.Array) -> jax.Array:
+    """conv_in: [B, H, W, in_channels] latents -> [B, H, W, block_out_channels[0]]."""
+    config = self.config
+    return Conv2d(config.block_out_channels[0], config.conv_in_kernel,
+                  padding=config.conv_in_kernel // 2, compute_dtype=self.compute_dtype,
+                  name="conv_in")(sample)
+
+  def down_path(self, x: jax.Array, time_embedding: jax.Array, context: jax.Array
+                ) -> tuple[jax.Array, list[jax.Array]]:
+    """conv_in's output -> (the deepest map, the skips: x first, then each down block's)."""
+    skips = [x]
+    for index in range(len(self.config.block_out_channels)):
+      x, block_skips = DownBlock(self.config, index, self.attention, self.compute_dtype,
+                                 name=f"down_blocks_{index}")(x, time_embedding, context)
+      skips.extend(block_skips)
+    return x, skips
+
+  def middle(self, x: jax.Array, time_embedding: jax.Array, context: jax.Array) -> jax.Array:
+    """The mid block, on the deepest map of the down path."""
+    return MidBlock(self.config, attention=self.attention, compute_dtype=self.compute_dtype,
+                    name="mid_block")(x, time_embedding, context)
+
+  def example_inputs(self) -> dict[str, jax.ShapeDtypeStruct]:
+    """Abstract inputs of the smallest valid size, for shape inference (`weights`)."""
+    config, batch = self.config, 1
+    size = 2 ** (len(config.block_out_channels) - 1)
+    inputs = dict(
+        sample=jax.ShapeDtypeStruct((batch, size, size, config.in_channels), jnp.float32),
+        timesteps=jax.ShapeDtypeStruct((batch,), jnp.float32),
+        encoder_hidden_states=jax.ShapeDtypeStruct((batch, 1, config.cross_attention_dim),
+                                                   jnp.float32))
+    if config.addition_embed_type == "text_time":
+      pooled = config.projection_class_embeddings_input_dim - 6 * config.addition_time_embed_dim
+      inputs["text_embeds"] = jax.ShapeDtypeStruct((batch, pooled), jnp.float32)
+      inputs["time_ids"] = jax.ShapeDtypeStruct((batch, 6), jnp.float32)
+    return inputs

@@ -21,8 +21,7 @@ import numpy as np
 
 from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.attention import AttentionOptions
-from signerf_jax.diffusion.blocks import (ControlNetResiduals, DownBlock, MidBlock, embed_time,
-                                          example_inputs)
+from signerf_jax.diffusion.blocks import Backbone, ControlNetResiduals
 from signerf_jax.diffusion.layers import Conv2d, Dtype
 from signerf_jax.errors import InputError
 
@@ -54,11 +53,32 @@ def guess_mode_scales(count: int) -> np.ndarray:
   return np.logspace(-1.0, 0.0, count).astype(np.float32)
 
 
-class ControlNet(nn.Module):
+def scale_residuals(down: list[jax.Array], mid: jax.Array,
+                    controlnet_conditioning_scale: float | jax.Array, guess_mode: bool,
+                    global_pool_conditions: bool) -> ControlNetResiduals:
+  """The zero convolutions' outputs times the conditioning scale, as diffusers weights them.
+
+  In guess mode (without pooled conditions) the scale is weighted from 0.1 at the shallowest
+  skip to 1 at the mid block (`guess_mode_scales`); pooled conditions are then averaged over
+  height and width ([B, 1, 1, C]).
+  """
+  if guess_mode and not global_pool_conditions:
+    residual_scales = (jnp.asarray(guess_mode_scales(len(down) + 1))
+                       * controlnet_conditioning_scale)
+  else:
+    residual_scales = jnp.broadcast_to(
+        jnp.asarray(controlnet_conditioning_scale, jnp.float32), (len(down) + 1,))
+  down = [residual * residual_scales[index] for index, residual in enumerate(down)]
+  mid = mid * residual_scales[-1]
+  if global_pool_conditions:
+    down = [jnp.mean(residual, axis=(1, 2), keepdims=True) for residual in down]
+    mid = jnp.mean(mid, axis=(1, 2), keepdims=True)
+  return ControlNetResiduals(tuple(down), mid)
+
+
+class ControlNet(Backbone):
   """ControlNetModel; configure it with `ControlNetConfig.from_dict(config_json)`."""
   config: model_configs.ControlNetConfig
-  attention: AttentionOptions = AttentionOptions()
-  compute_dtype: Dtype = jnp.float32
 
   @nn.compact
   def __call__(self, sample: jax.Array, timesteps: jax.Array, encoder_hidden_states: jax.Array,
@@ -86,61 +106,38 @@ class ControlNet(nn.Module):
       global_pool_conditions each map is averaged over height and width ([B, 1, 1, C]).
     """
     config = self.config
-    options = dict(attention=self.attention, compute_dtype=self.compute_dtype)
     if controlnet_cond.shape[-1] != config.conditioning_channels:
       raise InputError(f"controlnet_cond has {controlnet_cond.shape[-1]} channels (NHWC) but "
                        f"the ControlNet takes {config.conditioning_channels}",
                        field="controlnet_cond")
     if config.conditioning_channel_order == "bgr":
       controlnet_cond = controlnet_cond[..., ::-1]
-    time_embedding = embed_time(config, timesteps, sample.shape[0], text_embeds, time_ids,
-                                self.compute_dtype)
+    time_embedding = self.embed_time(timesteps, sample.shape[0], text_embeds, time_ids)
     context = encoder_hidden_states
-
-    channels = config.block_out_channels
-    x = Conv2d(channels[0], config.conv_in_kernel, padding=config.conv_in_kernel // 2,
-               compute_dtype=self.compute_dtype, name="conv_in")(sample)
-    x = x + ConditioningEmbedding(channels[0], config.conditioning_embedding_out_channels,
-                                  self.compute_dtype, name="controlnet_cond_embedding")(
-                                      controlnet_cond)
-    skips = [x]
-    for index in range(len(channels)):
-      x, block_skips = DownBlock(config, index, **options, name=f"down_blocks_{index}")(
-          x, time_embedding, context)
-      skips.extend(block_skips)
-    x = MidBlock(config, **options, name="mid_block")(x, time_embedding, context)
-
+    x = self.input_convolution(sample) + ConditioningEmbedding(
+        config.block_out_channels[0], config.conditioning_embedding_out_channels,
+        self.compute_dtype, name="controlnet_cond_embedding")(controlnet_cond)
+    x, skips = self.down_path(x, time_embedding, context)
+    x = self.middle(x, time_embedding, context)
     zero_conv = lambda skip, name: Conv2d(skip.shape[-1], kernel_size=1, padding=0, name=name,
                                           compute_dtype=self.compute_dtype)(skip)
     down = [zero_conv(skip, f"controlnet_down_blocks_{index}") for index, skip in enumerate(skips)]
     mid = zero_conv(x, "controlnet_mid_block")
-
-    if guess_mode and not config.global_pool_conditions:
-      residual_scales = (jnp.asarray(guess_mode_scales(len(down) + 1))
-                         * controlnet_conditioning_scale)
-    else:
-      residual_scales = jnp.broadcast_to(
-          jnp.asarray(controlnet_conditioning_scale, jnp.float32), (len(down) + 1,))
-    down = [residual * residual_scales[index] for index, residual in enumerate(down)]
-    mid = mid * residual_scales[-1]
-    if config.global_pool_conditions:
-      down = [jnp.mean(residual, axis=(1, 2), keepdims=True) for residual in down]
-      mid = jnp.mean(mid, axis=(1, 2), keepdims=True)
-    return ControlNetResiduals(tuple(down), mid)
+    return scale_residuals(down, mid, controlnet_conditioning_scale, guess_mode,
+                           config.global_pool_conditions)
 
   def example_inputs(self) -> dict[str, jax.ShapeDtypeStruct]:
     """Abstract inputs of the smallest valid size, for shape inference (`weights`)."""
-    config = self.config
-    inputs = example_inputs(config)
+    inputs = super().example_inputs()
     batch, size = inputs["sample"].shape[:2]
-    image_size = size * 2 ** (len(config.conditioning_embedding_out_channels) - 1)
+    image_size = size * 2 ** (len(self.config.conditioning_embedding_out_channels) - 1)
     inputs["controlnet_cond"] = jax.ShapeDtypeStruct(
-        (batch, image_size, image_size, config.conditioning_channels), jnp.float32)
+        (batch, image_size, image_size, self.config.conditioning_channels), jnp.float32)
     return inputs
 
 
 def load_controlnet(path: str | os.PathLike, dtype=np.float32, *, variant: str | None = None,
-                    attention: AttentionOptions | None = None,
+                    attention: AttentionOptions = AttentionOptions(),
                     compute_dtype: Dtype = jnp.float32) -> tuple[ControlNet, dict]:
   """Builds the ControlNet of a diffusers `controlnet/` directory and loads its safetensors.
 
@@ -149,5 +146,5 @@ def load_controlnet(path: str | os.PathLike, dtype=np.float32, *, variant: str |
   directory = model_configs.component_directory(path, "controlnet")
   config = model_configs.ControlNetConfig.from_dict(model_configs.read_config(directory),
                                                     directory / "config.json")
-  module = ControlNet(config, attention or AttentionOptions(), compute_dtype)
+  module = ControlNet(config, attention, compute_dtype)
   return module, weights.load_params(module, directory, dtype, variant)

@@ -1,10 +1,15 @@
-"""Layers shared by the UNet, ControlNet and VAE, in NHWC layout.
+"""The NHWC layers the UNet, ControlNet and VAE are built from, and how they compute.
 
 Every array here is channels-last: images and feature maps are [batch, height, width, channels]
 (XLA's CPU convolutions are faster in NHWC than in NCHW, and no transposes are needed around
 the token-wise attention layers). Parameters are stored as Flax expects them: convolution
 kernels [kh, kw, in, out] (HWIO), dense kernels [in, out], norm `scale`/`bias` [channels];
 `signerf_jax.diffusion.weights` converts diffusers' OIHW / [out, in] tensors into this layout.
+
+The layers are dense (`Linear`), convolution (`Conv2d`, and `UpsampleConv`: nearest upsampling
+then a convolution), `GroupNorm` and `LayerNorm`. A convolution runs by the fastest exact
+algorithm for its size (`conv2d`: an im2col matmul, Winograd's F(2x2, 3x3) or XLA's own); the
+rewrites are differentiated as XLA's convolution.
 
 Precision: `compute_dtype` is the dtype of the inputs of matmuls and convolutions (float32, or
 bfloat16 for the fast option); they always accumulate and return float32, and normalisation
@@ -14,7 +19,6 @@ statistics, softmax and residual sums stay float32 whatever the compute dtype.
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any
 
 import flax.linen as nn
@@ -262,48 +266,6 @@ class LayerNorm(nn.Module):
     return centred * lax.rsqrt(variance + self.epsilon) * scale + bias
 
 
-class ResnetBlock2D(nn.Module):
-  """diffusers' ResnetBlock2D ("default" time-embedding norm, pre-norm, SiLU).
-
-  x [B, H, W, C_in], time_embedding [B, T] or None -> [B, H, W, out_channels].
-  """
-  out_channels: int
-  groups: int
-  epsilon: float
-  output_scale_factor: float = 1.0
-  compute_dtype: Dtype = jnp.float32
-
-  @nn.compact
-  def __call__(self, x: jax.Array, time_embedding: jax.Array | None = None) -> jax.Array:
-    conv = lambda name, **kw: Conv2d(self.out_channels, name=name, compute_dtype=self.compute_dtype,
-                                     **kw)
-    h = nn.silu(GroupNorm(self.groups, self.epsilon, name="norm1")(x))
-    h = conv("conv1")(h)
-    if time_embedding is not None:
-      shift = Linear(self.out_channels, name="time_emb_proj", compute_dtype=self.compute_dtype)(
-          nn.silu(time_embedding))
-      h = h + shift[:, None, None, :]
-    h = nn.silu(GroupNorm(self.groups, self.epsilon, name="norm2")(h))
-    h = conv("conv2")(h)
-    if x.shape[-1] != self.out_channels:
-      x = conv("conv_shortcut", kernel_size=1, padding=0)(x)
-    residual = x + h
-    return residual if self.output_scale_factor == 1 else residual / self.output_scale_factor
-
-
-class Downsample2D(nn.Module):
-  """Stride-2 3x3 convolution. padding 0 means diffusers' asymmetric (0, 1) pad (the VAE's)."""
-  channels: int
-  padding: int = 1
-  compute_dtype: Dtype = jnp.float32
-
-  @nn.compact
-  def __call__(self, x: jax.Array) -> jax.Array:
-    padding = ((0, 1), (0, 1)) if self.padding == 0 else self.padding
-    return Conv2d(self.channels, stride=2, padding=padding, name="conv",
-                  compute_dtype=self.compute_dtype)(x)
-
-
 def upsample_nearest(x: jax.Array, size: tuple[int, int] | None = None) -> jax.Array:
   """Nearest-neighbour upsampling of [B, H, W, C] by 2, or to `size` (as torch's F.interpolate)."""
   batch, height, width, channels = x.shape
@@ -372,37 +334,3 @@ class UpsampleConv(nn.Module):
     if size is None or tuple(size) == (2 * x.shape[1], 2 * x.shape[2]):
       return upsample_conv(x, kernel, self.compute_dtype) + bias
     return conv2d(upsample_nearest(x, size), kernel, 1, 1, self.compute_dtype) + bias
-
-
-class Upsample2D(nn.Module):
-  """diffusers' Upsample2D with a convolution: nearest x2 (or to `size`), 3x3 conv."""
-  channels: int
-  compute_dtype: Dtype = jnp.float32
-
-  @nn.compact
-  def __call__(self, x: jax.Array, size: tuple[int, int] | None = None) -> jax.Array:
-    return UpsampleConv(self.channels, self.compute_dtype, name="conv")(x, size)
-
-
-def timestep_embedding(timesteps: jax.Array, dim: int, flip_sin_to_cos: bool, freq_shift: float,
-                       max_period: float = 10000.0) -> jax.Array:
-  """Sinusoidal embedding of [N] timesteps -> [N, dim] float32 (get_timestep_embedding)."""
-  half = dim // 2
-  exponent = -math.log(max_period) * jnp.arange(half, dtype=jnp.float32) / (half - freq_shift)
-  angles = jnp.asarray(timesteps, jnp.float32)[:, None] * jnp.exp(exponent)[None, :]
-  sin, cos = jnp.sin(angles), jnp.cos(angles)
-  embedding = jnp.concatenate([cos, sin] if flip_sin_to_cos else [sin, cos], axis=-1)
-  if dim % 2:
-    embedding = jnp.pad(embedding, ((0, 0), (0, 1)))
-  return embedding
-
-
-class TimestepEmbedding(nn.Module):
-  """linear_1 -> SiLU -> linear_2 (diffusers' TimestepEmbedding)."""
-  features: int
-  compute_dtype: Dtype = jnp.float32
-
-  @nn.compact
-  def __call__(self, x: jax.Array) -> jax.Array:
-    x = nn.silu(Linear(self.features, name="linear_1", compute_dtype=self.compute_dtype)(x))
-    return Linear(self.features, name="linear_2", compute_dtype=self.compute_dtype)(x)

@@ -1,10 +1,9 @@
 """The configurations of the UNet, ControlNet and AutoencoderKL, parsed from diffusers' config.json.
 
 Each parser takes the JSON dict as diffusers writes it (`save_pretrained`), checks every option
-against what this port implements, and returns a frozen dataclass with per-block values spelled
-out (tuples, one entry per down block). Unknown options, and options set to a value this port
-does not implement, raise `InputError` naming the config file and the field; keys beginning with
-"_" (diffusers' metadata) are ignored.
+against what this port implements (the tables of `model_options`) and that the options fit
+together, and returns a frozen dataclass with per-block values spelled out (tuples, one entry
+per down block). What does not fit raises `InputError` naming the config file and the field.
 
 diffusers' historical naming is kept exactly: a UNet's `attention_head_dim` is the *number of
 heads* unless `num_attention_heads` is set, and each transformer's head size is then
@@ -19,171 +18,11 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from signerf_jax import files
+from signerf_jax.diffusion import model_options
+from signerf_jax.diffusion.model_options import (CROSS_ATTENTION_DOWN, CROSS_ATTENTION_MID,
+                                                 CROSS_ATTENTION_UP, PLAIN_DOWN, PLAIN_MID,
+                                                 PLAIN_UP)
 from signerf_jax.errors import InputError
-
-CROSS_ATTENTION_DOWN = "CrossAttnDownBlock2D"
-PLAIN_DOWN = "DownBlock2D"
-CROSS_ATTENTION_UP = "CrossAttnUpBlock2D"
-PLAIN_UP = "UpBlock2D"
-CROSS_ATTENTION_MID = "UNetMidBlock2DCrossAttn"
-PLAIN_MID = "UNetMidBlock2D"
-ANY = object()  # marks options that do not change inference (dropout, sample_size, ...)
-
-# Options shared by the UNet and the ControlNet, with diffusers' defaults.
-_BACKBONE_DEFAULTS = {
-    "in_channels": 4,
-    "flip_sin_to_cos": True,
-    "freq_shift": 0,
-    "down_block_types": (CROSS_ATTENTION_DOWN,) * 3 + (PLAIN_DOWN,),
-    "mid_block_type": CROSS_ATTENTION_MID,
-    "only_cross_attention": False,
-    "block_out_channels": (320, 640, 1280, 1280),
-    "layers_per_block": 2,
-    "downsample_padding": 1,
-    "mid_block_scale_factor": 1.0,
-    "act_fn": "silu",
-    "norm_num_groups": 32,
-    "norm_eps": 1e-5,
-    "cross_attention_dim": 1280,
-    "transformer_layers_per_block": 1,
-    "encoder_hid_dim": None,
-    "encoder_hid_dim_type": None,
-    "attention_head_dim": 8,
-    "num_attention_heads": None,
-    "use_linear_projection": False,
-    "class_embed_type": None,
-    "addition_embed_type": None,
-    "addition_time_embed_dim": None,
-    "num_class_embeds": None,
-    "upcast_attention": False,
-    "resnet_time_scale_shift": "default",
-    "projection_class_embeddings_input_dim": None,
-    "addition_embed_type_num_heads": 64,
-}
-_BACKBONE_FIXED = {
-    "only_cross_attention": (False,),
-    "act_fn": ("silu", "swish"),
-    "encoder_hid_dim": (None,),
-    "encoder_hid_dim_type": (None,),
-    "class_embed_type": (None,),
-    "num_class_embeds": (None,),
-    "resnet_time_scale_shift": ("default",),
-    "addition_embed_type": (None, "text_time"),
-    "addition_embed_type_num_heads": ANY,  # used only by addition_embed_type "text"
-}
-_UNET_DEFAULTS = {
-    **_BACKBONE_DEFAULTS,
-    "sample_size": None,
-    "out_channels": 4,
-    "center_input_sample": False,
-    "up_block_types": (PLAIN_UP,) + (CROSS_ATTENTION_UP,) * 3,
-    "dropout": 0.0,
-    "reverse_transformer_layers_per_block": None,
-    "dual_cross_attention": False,
-    "resnet_skip_time_act": False,
-    "resnet_out_scale_factor": 1.0,
-    "time_embedding_type": "positional",
-    "time_embedding_dim": None,
-    "time_embedding_act_fn": None,
-    "timestep_post_act": None,
-    "time_cond_proj_dim": None,
-    "conv_in_kernel": 3,
-    "conv_out_kernel": 3,
-    "attention_type": "default",
-    "class_embeddings_concat": False,
-    "mid_block_only_cross_attention": None,
-    "cross_attention_norm": None,
-}
-_UNET_FIXED = {
-    **_BACKBONE_FIXED,
-    "sample_size": ANY,
-    "dropout": ANY,
-    # diffusers' UNet2DConditionModel itself refuses num_attention_heads (its issue #2011).
-    "num_attention_heads": (None,),
-    "reverse_transformer_layers_per_block": (None,),
-    "dual_cross_attention": (False,),
-    "resnet_skip_time_act": (False,),
-    "resnet_out_scale_factor": (1, 1.0),
-    "time_embedding_type": ("positional",),
-    "time_embedding_act_fn": (None,),
-    "timestep_post_act": (None,),
-    "time_cond_proj_dim": (None,),
-    "attention_type": ("default",),
-    "class_embeddings_concat": (False,),
-    "mid_block_only_cross_attention": (None, False),
-    "cross_attention_norm": (None,),
-}
-_CONTROLNET_DEFAULTS = {
-    **_BACKBONE_DEFAULTS,
-    "conditioning_channels": 3,
-    "controlnet_conditioning_channel_order": "rgb",
-    "conditioning_embedding_out_channels": (16, 32, 96, 256),
-    "global_pool_conditions": False,
-}
-_CONTROLNET_FIXED = {
-    **_BACKBONE_FIXED,
-    "controlnet_conditioning_channel_order": ("rgb", "bgr"),
-}
-_AUTOENCODER_DEFAULTS = {
-    "in_channels": 3,
-    "out_channels": 3,
-    "down_block_types": ("DownEncoderBlock2D",),
-    "up_block_types": ("UpDecoderBlock2D",),
-    "block_out_channels": (64,),
-    "layers_per_block": 1,
-    "act_fn": "silu",
-    "latent_channels": 4,
-    "norm_num_groups": 32,
-    "sample_size": 32,
-    "scaling_factor": 0.18215,
-    "shift_factor": None,
-    "latents_mean": None,
-    "latents_std": None,
-    "force_upcast": True,
-    "use_quant_conv": True,
-    "use_post_quant_conv": True,
-    "mid_block_add_attention": True,
-}
-_AUTOENCODER_FIXED = {
-    "act_fn": ("silu", "swish"),
-    "sample_size": ANY,
-    "force_upcast": ANY,  # a float16 matter; this port computes norms in float32 anyway
-    "latents_mean": (None,),
-    "latents_std": (None,),
-}
-
-
-def _check_options(raw: Mapping[str, Any], path: Path, defaults: Mapping[str, Any],
-                   fixed: Mapping[str, Any]) -> dict[str, Any]:
-  """diffusers defaults overlaid with `raw`; raises on unknown or unsupported options."""
-  if not isinstance(raw, Mapping):
-    raise InputError("a model config must be a JSON object", path)
-  options = dict(defaults)
-  for name, value in raw.items():
-    if name.startswith("_"):
-      continue
-    if name not in defaults:
-      raise InputError(f"unknown option {name!r} (this port does not implement it)", path, name)
-    options[name] = tuple(value) if isinstance(value, list) else value
-  for name, allowed in fixed.items():
-    if allowed is not ANY and options[name] not in allowed:
-      raise InputError(f"unsupported value {options[name]!r}; this port implements "
-                       f"{' or '.join(repr(a) for a in allowed)}", path, name)
-  return options
-
-
-def _per_block(options: dict[str, Any], name: str, count: int, path: Path) -> tuple[int, ...]:
-  """Option `name`: an int broadcast over `count` blocks, or a list of exactly `count` ints."""
-  value = options[name]
-  if isinstance(value, tuple):
-    if len(value) != count or not all(isinstance(v, int) for v in value):
-      raise InputError(f"expected {count} integers (one per down block), got {list(value)}",
-                       path, name)
-    return value
-  if not isinstance(value, int):
-    raise InputError(f"expected an integer or a list of integers, got {value!r}", path, name)
-  return (value,) * count
-
 
 @dataclasses.dataclass(frozen=True)
 class BackboneConfig:
@@ -217,16 +56,25 @@ class BackboneConfig:
   conv_in_kernel: int
 
 
-def _backbone_fields(options: dict[str, Any], path: Path, mid_block_types: tuple) -> dict:
+def _check_block_types(options: dict[str, Any], field: str, implemented: tuple[str, str],
+                       path: Path) -> None:
+  """Raises unless every block type the option `field` lists is one of the two implemented."""
+  for block_type in options[field]:
+    if block_type not in implemented:
+      raise InputError(f"unsupported block type {block_type!r}; this port implements "
+                       f"{implemented[0]} and {implemented[1]}", path, field)
+
+
+def _check_blocks(options: dict[str, Any], path: Path, mid_block_types: tuple) -> None:
+  """Raises unless the blocks are ones this port builds: a channel count and a known type per
+  down block, a known mid block, norm groups dividing every block's channels, and one
+  transformer depth per block."""
   channels = options["block_out_channels"]
   down_types = options["down_block_types"]
   count = len(down_types)
   if not isinstance(channels, tuple) or len(channels) != count:
     raise InputError(f"needs one entry per down block ({count})", path, "block_out_channels")
-  for block_type in down_types:
-    if block_type not in (CROSS_ATTENTION_DOWN, PLAIN_DOWN):
-      raise InputError(f"unsupported block type {block_type!r}; this port implements "
-                       f"{CROSS_ATTENTION_DOWN} and {PLAIN_DOWN}", path, "down_block_types")
+  _check_block_types(options, "down_block_types", (CROSS_ATTENTION_DOWN, PLAIN_DOWN), path)
   if options["mid_block_type"] not in mid_block_types:
     raise InputError(f"unsupported mid block {options['mid_block_type']!r}; this port implements "
                      f"{' or '.join(map(repr, mid_block_types))}", path, "mid_block_type")
@@ -239,40 +87,61 @@ def _backbone_fields(options: dict[str, Any], path: Path, mid_block_types: tuple
                                                    for v in transformer_layers):
     raise InputError("per-layer lists (asymmetric UNets) are not implemented", path,
                      "transformer_layers_per_block")
+
+
+def _attention_heads(options: dict[str, Any], count: int, path: Path) -> tuple[int, ...]:
+  """Heads per down block: `num_attention_heads` when set, else `attention_head_dim` (see the
+  module docstring); each must divide its block's channels."""
   heads_field = "attention_head_dim" if options["num_attention_heads"] is None else \
       "num_attention_heads"
-  heads = _per_block(options, heads_field, count, path)
-  for block_channels, block_heads in zip(channels, heads):
+  heads = model_options.per_block(options, heads_field, count, path)
+  for block_channels, block_heads in zip(options["block_out_channels"], heads):
     if block_channels % block_heads:
       raise InputError(f"{block_heads} heads do not divide {block_channels} channels", path,
                        heads_field)
-  cross_attention_dims = _per_block(options, "cross_attention_dim", count, path)
+  return heads
+
+
+def _cross_attention_dim(options: dict[str, Any], count: int, path: Path) -> int:
+  """The width of the text states, given once or (all equal) per down block."""
+  cross_attention_dims = model_options.per_block(options, "cross_attention_dim", count, path)
   if len(set(cross_attention_dims)) != 1:
     raise InputError("a different cross-attention width per block is not implemented", path,
                      "cross_attention_dim")
+  return cross_attention_dims[0]
+
+
+def _backbone_fields(options: dict[str, Any], path: Path, mid_block_types: tuple) -> dict:
+  """The `BackboneConfig` fields of a UNet's or ControlNet's options (`read_options`' result),
+  after checking that they fit together; `mid_block_types` are the mid blocks allowed."""
+  _check_blocks(options, path, mid_block_types)
+  count = len(options["down_block_types"])
+  heads = _attention_heads(options, count, path)
+  cross_attention_dim = _cross_attention_dim(options, count, path)
   if options["addition_embed_type"] == "text_time":
     for name in ("addition_time_embed_dim", "projection_class_embeddings_input_dim"):
       if not isinstance(options[name], int):
         raise InputError("required (an integer) when addition_embed_type is 'text_time'", path,
                          name)
+  per_block = lambda name: model_options.per_block(options, name, count, path)
   return dict(
       in_channels=options["in_channels"],
-      block_out_channels=channels,
-      down_block_types=down_types,
-      layers_per_block=_per_block(options, "layers_per_block", count, path),
-      transformer_layers_per_block=_per_block(options, "transformer_layers_per_block", count, path),
+      block_out_channels=options["block_out_channels"],
+      down_block_types=options["down_block_types"],
+      layers_per_block=per_block("layers_per_block"),
+      transformer_layers_per_block=per_block("transformer_layers_per_block"),
       num_attention_heads=heads,
-      cross_attention_dim=cross_attention_dims[0],
+      cross_attention_dim=cross_attention_dim,
       mid_block_type=options["mid_block_type"],
       mid_block_scale_factor=float(options["mid_block_scale_factor"]),
       downsample_padding=options["downsample_padding"],
-      norm_num_groups=groups,
+      norm_num_groups=options["norm_num_groups"],
       norm_eps=float(options["norm_eps"]),
       use_linear_projection=bool(options["use_linear_projection"]),
       upcast_attention=bool(options["upcast_attention"]),
       flip_sin_to_cos=bool(options["flip_sin_to_cos"]),
       freq_shift=float(options["freq_shift"]),
-      time_embedding_dim=options.get("time_embedding_dim") or channels[0] * 4,
+      time_embedding_dim=options.get("time_embedding_dim") or options["block_out_channels"][0] * 4,
       addition_embed_type=options["addition_embed_type"],
       addition_time_embed_dim=options["addition_time_embed_dim"],
       projection_class_embeddings_input_dim=options["projection_class_embeddings_input_dim"],
@@ -292,15 +161,13 @@ class UNetConfig(BackboneConfig):
   def from_dict(cls, raw: Mapping[str, Any], path: str | os.PathLike = "config.json"
                 ) -> "UNetConfig":
     path = Path(path)
-    options = _check_options(raw, path, _UNET_DEFAULTS, _UNET_FIXED)
+    options = model_options.read_options(raw, path, model_options.UNET_DEFAULTS,
+                                         model_options.UNET_FIXED)
     fields = _backbone_fields(options, path, (CROSS_ATTENTION_MID, PLAIN_MID, None))
     up_types = options["up_block_types"]
     if len(up_types) != len(fields["down_block_types"]):
       raise InputError("needs as many entries as down_block_types", path, "up_block_types")
-    for block_type in up_types:
-      if block_type not in (CROSS_ATTENTION_UP, PLAIN_UP):
-        raise InputError(f"unsupported block type {block_type!r}; this port implements "
-                         f"{CROSS_ATTENTION_UP} and {PLAIN_UP}", path, "up_block_types")
+    _check_block_types(options, "up_block_types", (CROSS_ATTENTION_UP, PLAIN_UP), path)
     for name in ("conv_in_kernel", "conv_out_kernel"):
       if options[name] % 2 != 1:
         raise InputError("must be odd (same-size convolution)", path, name)
@@ -321,7 +188,8 @@ class ControlNetConfig(BackboneConfig):
   def from_dict(cls, raw: Mapping[str, Any], path: str | os.PathLike = "config.json"
                 ) -> "ControlNetConfig":
     path = Path(path)
-    options = _check_options(raw, path, _CONTROLNET_DEFAULTS, _CONTROLNET_FIXED)
+    options = model_options.read_options(raw, path, model_options.CONTROLNET_DEFAULTS,
+                                         model_options.CONTROLNET_FIXED)
     if not isinstance(options["layers_per_block"], int):
       raise InputError("ControlNetModel takes one integer", path, "layers_per_block")
     if not isinstance(options["cross_attention_dim"], int):
@@ -361,7 +229,8 @@ class AutoencoderConfig:
   def from_dict(cls, raw: Mapping[str, Any], path: str | os.PathLike = "config.json"
                 ) -> "AutoencoderConfig":
     path = Path(path)
-    options = _check_options(raw, path, _AUTOENCODER_DEFAULTS, _AUTOENCODER_FIXED)
+    options = model_options.read_options(raw, path, model_options.AUTOENCODER_DEFAULTS,
+                                         model_options.AUTOENCODER_FIXED)
     channels = options["block_out_channels"]
     for name, expected in (("down_block_types", "DownEncoderBlock2D"),
                            ("up_block_types", "UpDecoderBlock2D")):

@@ -19,7 +19,7 @@ output size (no resizing), `num_images_per_prompt=1`, `eta=0`, no `padding_mask_
 `clip_skip`, `guidance_rescale`, `denoising_start/end`, IP-adapters or multi-ControlNets, and
 the same random draws (see `sampler.SamplerNoise` for the reference's order). The paste-back
 (`GenerationOptions.paste_back`) is diffusers' `apply_overlay` without the crop (see
-`sampler.paste_back`); diffusers applies it only together with `padding_mask_crop`.
+`mask_processing.paste_back`); diffusers applies it only together with `padding_mask_crop`.
 """
 
 from __future__ import annotations
@@ -29,25 +29,18 @@ import os
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import gin
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from signerf_jax import files
 from signerf_jax.clip import text as clip_text
-from signerf_jax.clip.tokenizer import Tokenizer, load_tokenizer
-from signerf_jax.diffusion import sampler, schedulers
+from signerf_jax.clip.tokenizer import Tokenizer
+from signerf_jax.diffusion import guidance as guidance_lib
+from signerf_jax.diffusion import pipeline_components, sampler, schedulers, solvers
 from signerf_jax.diffusion.attention import AttentionOptions
-from signerf_jax.diffusion.controlnet import load_controlnet
 from signerf_jax.diffusion.layers import Dtype
-from signerf_jax.diffusion.unet import load_unet
-from signerf_jax.diffusion.vae import load_vae
 from signerf_jax.errors import InputError
 
-MODEL_INDEX = "model_index.json"
-COMPONENTS = ("unet", "controlnet", "vae", "text_encoder", "text_encoder_2", "tokenizer",
-              "tokenizer_2", "scheduler")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -73,59 +66,6 @@ class Pipeline:
     return self.models.unet.config.addition_embed_type == "text_time"
 
 
-def _read_model_index(path: Path) -> tuple[dict[str, Path], dict[str, Any]]:
-  """(subdirectories of the components `model_index.json` names, the pipeline's options).
-
-  Entries are `name: [library, class]`, with [null, null] for an absent component (e.g. a
-  safety checker saved as None); other entries are options (force_zeros_for_empty_prompt, ...).
-  """
-  index_path = path / MODEL_INDEX
-  index = files.read_json(index_path)
-  if not isinstance(index, dict):
-    raise InputError("expected a JSON object", index_path)
-  components, options = {}, {}
-  for name, value in index.items():
-    if name.startswith("_"):
-      continue
-    if not isinstance(value, list):
-      options[name] = value
-    elif len(value) != 2:
-      raise InputError(f"expected [library, class], got {value!r}", index_path, name)
-    elif value[1] is not None:
-      components[name] = path / name
-  return components, options
-
-
-def _component_directories(path: Path | None, overrides: Mapping[str, Any]
-                           ) -> tuple[dict[str, Path], dict[str, Any], str]:
-  """Where each component is: an explicit path, else the pipeline directory's subfolder.
-
-  Returns:
-    (directories of the components found, model_index.json options, where the others were
-    looked for, for error messages).
-  """
-  pipeline_components, options = {}, {}
-  if path is None:
-    searched = "no pipeline directory was given"
-  elif not path.is_dir():
-    raise InputError("pipeline directory not found", path)
-  elif (path / MODEL_INDEX).is_file():
-    pipeline_components, options = _read_model_index(path)
-    searched = f"{MODEL_INDEX} does not list it"
-  else:  # No index: a folder of component subdirectories.
-    pipeline_components = {name: path / name for name in COMPONENTS if (path / name).is_dir()}
-    searched = f"no such subdirectory (and no {MODEL_INDEX})"
-  directories = {}
-  for name in COMPONENTS:
-    directory = (Path(overrides[name]) if overrides.get(name) is not None
-                 else pipeline_components.get(name))
-    if directory is not None:
-      if not directory.is_dir():
-        raise InputError(f"component {name!r} not found", directory, name)
-      directories[name] = directory
-  return directories, options, searched
-
-
 def load_pipeline(path: str | os.PathLike | None = None, *,
                   unet: str | os.PathLike | None = None,
                   controlnet: str | os.PathLike | None = None,
@@ -139,7 +79,7 @@ def load_pipeline(path: str | os.PathLike | None = None, *,
                   scheduler_options: Mapping[str, Any] | None = None,
                   dtype=np.float32, compute_dtype: Dtype = jnp.float32,
                   variant: str | None = None,
-                  attention: AttentionOptions | None = None) -> Pipeline:
+                  attention: AttentionOptions = AttentionOptions()) -> Pipeline:
   """Loads a diffusers pipeline directory and/or separately stored components.
 
   Args:
@@ -158,49 +98,28 @@ def load_pipeline(path: str | os.PathLike | None = None, *,
       float32 copies of them.
     compute_dtype: float32, or bfloat16 matmuls/convolutions with float32 accumulation.
     variant: diffusers weight variant ("fp16" reads *.fp16.safetensors).
-    attention: attention evaluation options.
+    attention: how the UNet, ControlNet and VAE evaluate attention (speed and memory only).
 
   Raises:
     InputError naming a missing component and where it was looked for, or the file and field
     of anything malformed.
   """
   path = None if path is None else Path(path)
-  overrides = dict(unet=unet, controlnet=controlnet, vae=vae, text_encoder=text_encoder,
-                   text_encoder_2=text_encoder_2, tokenizer=tokenizer, tokenizer_2=tokenizer_2,
-                   scheduler=scheduler)
-  directories, options, searched = _component_directories(path, overrides)
-
-  def require(name: str) -> Path:
-    if name not in directories:
-      raise InputError(f"missing pipeline component {name!r}: {searched}; pass "
-                       f"{name}=<directory>", path, name)
-    return directories[name]
-
-  if options.get("requires_aesthetics_score"):
+  components = pipeline_components.find_components(path, dict(
+      unet=unet, controlnet=controlnet, vae=vae, text_encoder=text_encoder,
+      text_encoder_2=text_encoder_2, tokenizer=tokenizer, tokenizer_2=tokenizer_2,
+      scheduler=scheduler))
+  if components.options.get("requires_aesthetics_score"):
     raise InputError("aesthetic-score conditioning (SDXL refiner) is not implemented",
-                     path / MODEL_INDEX, "requires_aesthetics_score")
-  network_options = dict(variant=variant, attention=attention, compute_dtype=compute_dtype)
-  unet_module, unet_params = load_unet(require("unet"), dtype, **network_options)
-  vae_module, vae_params = load_vae(require("vae"), dtype, **network_options)
-  controlnet_module, controlnet_params = None, None
-  if "controlnet" in directories:
-    controlnet_module, controlnet_params = load_controlnet(directories["controlnet"], dtype,
-                                                           **network_options)
-  models = sampler.DiffusionModels(unet_params, vae_params, controlnet_params, unet_module,
-                                   vae_module, controlnet_module)
-
-  if unet_module.config.addition_embed_type == "text_time":  # SDXL
-    encoder_names = [("tokenizer_2", "text_encoder_2")]
-    if "text_encoder" in directories or "tokenizer" in directories:
-      encoder_names.insert(0, ("tokenizer", "text_encoder"))
-  else:
-    encoder_names = [("tokenizer", "text_encoder")]
-  tokenizers = tuple(load_tokenizer(require(name)) for name, _ in encoder_names)
-  text_encoders = tuple(clip_text.load_text_encoder(require(name)) for _, name in encoder_names)
-  scheduler_config = schedulers.load_scheduler_config(require("scheduler"), scheduler_kind,
-                                                      **(scheduler_options or {}))
+                     path / pipeline_components.MODEL_INDEX, "requires_aesthetics_score")
+  models = pipeline_components.load_networks(components, dtype, variant=variant,
+                                             attention=attention, compute_dtype=compute_dtype)
+  tokenizers, text_encoders = pipeline_components.load_text_encoders(
+      components, models.unet.config.addition_embed_type == "text_time")
+  scheduler_config = schedulers.load_scheduler_config(
+      components.require("scheduler"), scheduler_kind, **(scheduler_options or {}))
   return Pipeline(models, tokenizers, text_encoders, scheduler_config,
-                  bool(options.get("force_zeros_for_empty_prompt", True)))
+                  bool(components.options.get("force_zeros_for_empty_prompt", True)))
 
 
 def encode_prompts(pipeline: Pipeline, prompts: str | Sequence[str],
@@ -228,10 +147,10 @@ def encode_prompts(pipeline: Pipeline, prompts: str | Sequence[str],
                                  negative_prompts, guidance)
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class GenerationOptions:
-  """The knobs of a generation (diffusers' argument names and meanings).
+  """The knobs of a generation (diffusers' argument names and meanings; gin:
+  `GenerationOptions.<field>`).
 
   Attributes:
     num_inference_steps: steps of the full schedule; int(steps * strength) of them run.
@@ -273,14 +192,14 @@ class SamplerSetup:
   """Everything `sampler.sample` takes besides the models, prompt, inputs and noise.
 
   Attributes:
-    schedule: the steps run (`schedulers.make_schedule` with the options' strength).
+    schedule: the steps run (`solvers.make_schedule` with the options' strength).
     time_ids: SDXL's [1, 6] size conditioning; None for SD.
     guidance: the traced guidance scale and per-step ControlNet scales.
     settings: the static choices.
   """
-  schedule: schedulers.Schedule
+  schedule: solvers.Schedule
   time_ids: jax.Array | None
-  guidance: sampler.Guidance
+  guidance: guidance_lib.Guidance
   settings: sampler.SamplerSettings
 
 
@@ -291,8 +210,8 @@ def sampler_setup(pipeline: Pipeline, height: int, width: int,
   `generate` calls `sampler.sample` with these; call it directly to vmap or shard it.
   """
   models = pipeline.models
-  schedule = schedulers.make_schedule(pipeline.scheduler, options.num_inference_steps,
-                                      options.strength)
+  schedule = solvers.make_schedule(pipeline.scheduler, options.num_inference_steps,
+                                   options.strength)
   guess_mode = options.guess_mode
   if models.controlnet is not None and not pipeline.is_sdxl:
     # The SD pipeline (not the SDXL one) forces guess mode for pooled-condition ControlNets.
@@ -301,11 +220,12 @@ def sampler_setup(pipeline: Pipeline, height: int, width: int,
       classifier_free_guidance=options.guidance_scale > 1.0, guess_mode=guess_mode,
       start_from_image=options.strength < 1.0, paste_back=options.paste_back,
       mask_blur=float(options.mask_blur) if options.paste_back else 0.0)
-  guidance = sampler.Guidance(
+  guidance = guidance_lib.Guidance(
       guidance_scale=jnp.float32(options.guidance_scale),
-      controlnet_conditioning_scale=jnp.asarray(sampler.controlnet_conditioning_scale_per_step(
-          schedule.num_steps, options.controlnet_conditioning_scale,
-          options.control_guidance_start, options.control_guidance_end)))
+      controlnet_conditioning_scale=jnp.asarray(
+          guidance_lib.controlnet_conditioning_scale_per_step(
+              schedule.num_steps, options.controlnet_conditioning_scale,
+              options.control_guidance_start, options.control_guidance_end)))
   time_ids = jnp.asarray(sdxl_time_ids(height, width, options)) if pipeline.is_sdxl else None
   return SamplerSetup(schedule, time_ids, guidance, settings)
 

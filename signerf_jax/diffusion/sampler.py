@@ -14,9 +14,9 @@ What each step computes (B samples; "2B" under classifier-free guidance, uncondi
     `controlnet_keep` from control_guidance_start/end); in guess mode under guidance the
     ControlNet sees only the conditional half and the unconditional half gets zero residuals, as
     diffusers does;
-  * guidance: eps_uncond + guidance_scale * (eps_cond - eps_uncond);
-  * the scheduler step; for a 4-channel UNet, latent blending: outside the mask the latents are
-    replaced by the original image's latents re-noised to the next step's level
+  * guidance: eps_uncond + guidance_scale * (eps_cond - eps_uncond) (`guidance`);
+  * the scheduler step (`solvers`); for a 4-channel UNet, latent blending: outside the mask the
+    latents are replaced by the original image's latents re-noised to the next step's level
     (diffusers' `init_latents_proper`), after the last step by the clean latents.
 
 Static (part of the compiled program): the models' architectures, input shapes and batch size,
@@ -33,11 +33,7 @@ settings) gives the same as flattening it into B, and `shard_map` can split B ac
 Noise drawn by `draw_noise` from per-sample keys keeps the property: a batch with keys
 (k0, k1) equals two single-sample calls with k0 and k1.
 
-Numerical conventions that match diffusers exactly:
-  * mask preprocessing (`VaeImageProcessor(do_binarize=True)`): m < 0.5 -> 0, else 1, at pixel
-    resolution; the masked image is image * (m < 0.5);
-  * the latent mask: `torch.nn.functional.interpolate(mask, size=latent_size)` (mode "nearest",
-    source index floor(i * in / out) in float32), see `downsample_mask`;
+Numerical conventions that match diffusers exactly (the mask's are `mask_processing`'s):
   * images in [0, 1] are mapped to [-1, 1] for the VAE and decoded images back with
     clip(x / 2 + 1 / 2, 0, 1); the ControlNet takes the control image in [0, 1];
   * VAE latents: z ~ posterior (a sample, with injected or key-drawn noise, as diffusers'
@@ -49,21 +45,21 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from signerf_jax.clip.text import PromptEmbeddings
+from signerf_jax.diffusion import guidance as guidance_lib
+from signerf_jax.diffusion import mask_processing
+from signerf_jax.diffusion import vae as vae_lib
+from signerf_jax.diffusion.blocks import ControlNetResiduals
 from signerf_jax.diffusion.controlnet import ControlNet
-from signerf_jax.diffusion.schedulers import Schedule
+from signerf_jax.diffusion.solvers import Schedule
 from signerf_jax.diffusion.unet import UNet2DCondition
-from signerf_jax.diffusion.vae import AutoencoderKL, DiagonalGaussian
+from signerf_jax.diffusion.vae import AutoencoderKL
 from signerf_jax.errors import InputError
-
-BLUR_PASSES = 3  # PIL's GaussianBlur: three box blurs per axis.
 
 
 @struct.dataclass
@@ -148,20 +144,6 @@ class SamplerNoise:
   steps: jax.Array
 
 
-@struct.dataclass
-class Guidance:
-  """The traced guidance strengths.
-
-  Attributes:
-    guidance_scale: () float32 classifier-free guidance weight (used when
-      `SamplerSettings.classifier_free_guidance`).
-    controlnet_conditioning_scale: [S] float32, the ControlNet conditioning scale of each step
-      run, zero where control guidance is off (`controlnet_conditioning_scale_per_step`).
-  """
-  guidance_scale: jax.Array
-  controlnet_conditioning_scale: jax.Array
-
-
 @dataclasses.dataclass(frozen=True)
 class SamplerSettings:
   """The static choices of a run (each combination is its own compiled program).
@@ -181,22 +163,6 @@ class SamplerSettings:
   start_from_image: bool = False
   paste_back: bool = False
   mask_blur: float = 0.0
-
-
-def controlnet_conditioning_scale_per_step(num_steps: int, controlnet_conditioning_scale: float,
-                                           guidance_start: float = 0.0,
-                                           guidance_end: float = 1.0) -> np.ndarray:
-  """[num_steps] float32 ControlNet scale per step run, as diffusers' `controlnet_keep`.
-
-  Step i (of the steps run, after strength truncation) is controlled unless
-  i / S < guidance_start or (i + 1) / S > guidance_end.
-  """
-  if not 0.0 <= guidance_start < guidance_end <= 1.0:
-    raise InputError(f"control guidance must satisfy 0 <= start < end <= 1, got start "
-                     f"{guidance_start} and end {guidance_end}", field="control_guidance_start")
-  keep = [1.0 - float(i / num_steps < guidance_start or (i + 1) / num_steps > guidance_end)
-          for i in range(num_steps)]
-  return (controlnet_conditioning_scale * np.asarray(keep)).astype(np.float32)
 
 
 @functools.partial(jax.jit, static_argnames=("latent_shape", "num_steps"))
@@ -220,86 +186,6 @@ def draw_noise(keys: jax.Array, latent_shape: tuple[int, int, int], num_steps: i
 
 
 # ----------------------------------------------------------------------------------------------
-# Mask processing.
-
-
-def binarize_mask(mask: jax.Array) -> jax.Array:
-  """diffusers' mask binarisation: values < 0.5 -> 0 (keep), the rest -> 1 (regenerate)."""
-  return jnp.where(mask < 0.5, 0.0, 1.0).astype(jnp.float32)
-
-
-def nearest_source_indices(input_size: int, output_size: int) -> np.ndarray:
-  """torch's "nearest" interpolation: source index min(floor(i * in / out), in - 1), float32."""
-  scale = np.float32(input_size) / np.float32(output_size)
-  indices = np.floor(np.arange(output_size, dtype=np.float32) * scale).astype(np.int64)
-  return np.minimum(indices, input_size - 1)
-
-
-def downsample_mask(mask: jax.Array, latent_height: int, latent_width: int) -> jax.Array:
-  """[B, H, W, 1] -> [B, h, w, 1] exactly as diffusers' `prepare_mask_latents` resizes it.
-
-  For H = 8h this takes pixel (8i, 8j), the top-left pixel of each latent cell.
-  """
-  rows = nearest_source_indices(mask.shape[1], latent_height)
-  columns = nearest_source_indices(mask.shape[2], latent_width)
-  return mask[:, rows][:, :, columns]
-
-
-def _gaussian_box_radius(radius: float) -> float:
-  """PIL's `_gaussian_blur_radius`: the fractional box radius whose BLUR_PASSES-fold repetition
-  has the variance of a Gaussian of standard deviation `radius` (Gwosdek et al. 2011)."""
-  variance = radius * radius / BLUR_PASSES
-  integral = math.floor((math.sqrt(12.0 * variance + 1.0) - 1.0) / 2.0)
-  fraction = ((2 * integral + 1) * (integral * (integral + 1) - 3 * variance) /
-              (6 * (variance - (integral + 1)**2)))
-  return integral + fraction
-
-
-def _box_kernel(box_radius: float) -> np.ndarray:
-  """PIL's extended box: 2l + 1 taps of weight 1 / (2r + 1) and a partial tap at each end."""
-  integral = int(box_radius)
-  weight = 1.0 / (2.0 * box_radius + 1.0)
-  edge = (1.0 - (2 * integral + 1) * weight) / 2.0
-  return np.asarray([edge] + [weight] * (2 * integral + 1) + [edge], np.float32)
-
-
-def blur_mask(mask: jax.Array, radius: float) -> jax.Array:
-  """diffusers' `VaeImageProcessor.blur` (PIL `ImageFilter.GaussianBlur(radius)`) in float.
-
-  PIL approximates the Gaussian by three extended box blurs along rows, then three along
-  columns, with edge pixels repeated; this is that filter without PIL's rounding to 8 bits after
-  every pass (the results differ by at most a few 1/255).
-
-  Args:
-    mask: [B, H, W, 1] float32.
-    radius: the Gaussian's standard deviation in pixels (`blur_factor`); 0 returns `mask`.
-  """
-  if radius <= 0:
-    return mask
-  kernel = _box_kernel(_gaussian_box_radius(radius))
-  half = len(kernel) // 2
-  for axis, kernel_shape in ((2, (1, len(kernel), 1, 1)), (1, (len(kernel), 1, 1, 1))):
-    for _ in range(BLUR_PASSES):
-      padding = [(0, 0)] * 4
-      padding[axis] = (half, half)
-      mask = jax.lax.conv_general_dilated(
-          jnp.pad(mask, padding, mode="edge"), jnp.asarray(kernel).reshape(kernel_shape),
-          (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"),
-          precision=jax.lax.Precision.HIGHEST)
-  return mask
-
-
-def paste_back(original: jax.Array, generated: jax.Array, mask: jax.Array) -> jax.Array:
-  """original * (1 - mask) + generated * mask: diffusers' `apply_overlay` in float.
-
-  Args:
-    original, generated: [B, H, W, 3] in [0, 1].
-    mask: [B, H, W, 1] in [0, 1] (soft values blend).
-  """
-  return original * (1.0 - mask) + generated * mask
-
-
-# ----------------------------------------------------------------------------------------------
 # The sampler.
 
 
@@ -312,128 +198,14 @@ class _LoopConstants:
   control: jax.Array | None  # [B, H, W, C] in [0, 1].
   mask: jax.Array  # [B, h, w, 1] binary.
   masked_image_latents: jax.Array | None  # Inpainting UNets.
-  image_latents: jax.Array | None  # Latent blending.
+  image_latents: jax.Array | None  # Starting from the image, and latent blending.
   initial_noise: jax.Array
 
 
-# The VAE runs on one image at a time (`lax.map`): at full resolution its activations are the
-# largest of the whole run, and this keeps them independent of the batch size.
-
-
-def _encode(models: DiffusionModels, images: jax.Array, posterior_noise: jax.Array) -> jax.Array:
-  """[N, H, W, 3] images in [-1, 1] -> diffusion latents, sampling the posterior with the noise."""
-  vae = models.vae
-
-  def encode_one(image_and_noise):
-    image, noise = image_and_noise
-    posterior: DiagonalGaussian = vae.apply({"params": models.vae_params}, image[None],
-                                            method=vae.encode)
-    return vae.config.to_diffusion_latents(posterior.sample_from_noise(noise[None]))[0]
-
-  return jax.lax.map(encode_one, (images, posterior_noise))
-
-
-def _decode(models: DiffusionModels, latents: jax.Array) -> jax.Array:
-  """Diffusion latents -> [B, H, W, 3] images in [0, 1] (diffusers' decode + postprocess)."""
-  vae = models.vae
-
-  def decode_one(one_latents):
-    z = vae.config.from_diffusion_latents(one_latents[None])
-    return vae.apply({"params": models.vae_params}, z, method=vae.decode)[0]
-
-  return jnp.clip(jax.lax.map(decode_one, latents) * 0.5 + 0.5, 0.0, 1.0)
-
-
-def _control_image(models: DiffusionModels, control: jax.Array) -> jax.Array:
-  """The control image with the ControlNet's channel count (a grey image is repeated, as PIL's
-  convert("RGB") of the control image does in diffusers)."""
-  channels = models.controlnet.config.conditioning_channels
-  if control.shape[-1] == 1 and channels != 1:
-    control = jnp.repeat(control, channels, axis=-1)
-  if control.shape[-1] != channels:
-    raise InputError(f"control has {control.shape[-1]} channels but the ControlNet takes "
-                     f"{channels}", field="control")
-  return control
-
-
-def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings: SamplerSettings,
-                   guidance_scale: jax.Array, controlnet_conditioning_scale: jax.Array,
-                   model_input: jax.Array, timestep: jax.Array) -> jax.Array:
-  """The guided noise (or v) prediction for the scheduler-scaled latents [B, h, w, C]."""
-  guided = settings.classifier_free_guidance
-  twice = lambda x: jnp.concatenate([x, x]) if guided else x
-  batch_latents = twice(model_input)
-  residuals = None
-  if models.controlnet is not None:
-    controlnet = functools.partial(models.controlnet.apply, {"params": models.controlnet_params},
-                                   guess_mode=settings.guess_mode)
-    if settings.guess_mode and guided:
-      # The ControlNet sees only the conditional half; the unconditional half gets nothing.
-      conditional = lambda x: None if x is None else x[model_input.shape[0]:]
-      residuals = controlnet(model_input, timestep, conditional(constants.text_states),
-                             constants.control, controlnet_conditioning_scale,
-                             text_embeds=conditional(constants.text_embeds),
-                             time_ids=conditional(constants.time_ids))
-      residuals = jax.tree.map(lambda r: jnp.concatenate([jnp.zeros_like(r), r]), residuals)
-    else:
-      residuals = controlnet(batch_latents, timestep, constants.text_states,
-                             twice(constants.control), controlnet_conditioning_scale,
-                             text_embeds=constants.text_embeds, time_ids=constants.time_ids)
-  unet_input = batch_latents
-  if models.inpainting_unet:
-    unet_input = jnp.concatenate([batch_latents, twice(constants.mask),
-                                  twice(constants.masked_image_latents)], axis=-1)
-  prediction = models.unet.apply({"params": models.unet_params}, unet_input, timestep,
-                                 constants.text_states, text_embeds=constants.text_embeds,
-                                 time_ids=constants.time_ids, control=residuals)
-  if not guided:
-    return prediction
-  unconditional, conditional = jnp.split(prediction, 2)
-  return unconditional + guidance_scale * (conditional - unconditional)
-
-
-def _text_conditioning(prompt: PromptEmbeddings, time_ids: jax.Array | None, batch: int,
-                       guided: bool) -> tuple[jax.Array, jax.Array | None, jax.Array | None]:
-  """(text states, pooled text embeds, time ids) for the UNet batch: [negative; positive] rows
-  under guidance, each broadcast from 1 or B rows to B."""
-  def rows(positive, negative):
-    if positive is None:
-      return None
-    positive = jnp.broadcast_to(positive, (batch, *positive.shape[1:]))
-    if not guided:
-      return positive
-    if negative is None:
-      raise InputError("classifier-free guidance needs negative prompt embeddings (encode the "
-                       "prompt with guidance=True)", field="negative_prompt_embeds")
-    return jnp.concatenate([jnp.broadcast_to(negative, positive.shape), positive])
-  return (rows(prompt.prompt_embeds, prompt.negative_prompt_embeds),
-          rows(prompt.pooled_prompt_embeds, prompt.negative_pooled_prompt_embeds),
-          rows(time_ids, time_ids))
-
-
-@functools.partial(jax.jit, static_argnames=("settings",))
-def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings,
-           time_ids: jax.Array | None, inputs: InpaintingInputs, noise: SamplerNoise,
-           guidance: Guidance, settings: SamplerSettings) -> jax.Array:
-  """Inpaints a batch: preprocessing, the denoising loop and decoding in one compiled program.
-
-  Args:
-    models: the networks and their parameters.
-    schedule: `schedulers.make_schedule(config, num_inference_steps, strength)`; its step count
-      S is the number of steps run.
-    prompt: text conditioning with 1 or B rows (negative embeddings needed under guidance; SDXL
-      also the pooled embeddings).
-    time_ids: SDXL's [1 or B, 6] (original size, crop top-left, target size); None otherwise.
-    inputs: images, masks and control images (see `InpaintingInputs`).
-    noise: every random draw (`draw_noise`, or injected arrays for parity with a reference).
-    guidance: the traced guidance scale and per-step ControlNet scales [S].
-    settings: the static choices (see `SamplerSettings`).
-
-  Returns:
-    [B, H, W, 3] float32 images in [0, 1].
-  """
-  image, mask = inputs.image, inputs.mask
-  batch, height, width = image.shape[:3]
+def _check_inputs(models: DiffusionModels, inputs: InpaintingInputs) -> None:
+  """Raises InputError unless the image size fits the VAE and a control image comes exactly
+  with a ControlNet."""
+  height, width = inputs.image.shape[1:3]
   factor = models.latent_factor
   if height % factor or width % factor:
     raise InputError(f"image size {height}x{width} is not a multiple of the latent factor "
@@ -441,35 +213,108 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
   if (models.controlnet is None) != (inputs.control is None):
     raise InputError("a control image is needed exactly when the pipeline has a ControlNet",
                      field="control")
-  latent_height, latent_width = height // factor, width // factor
-  binary_mask = binarize_mask(mask)
-  pixels = 2.0 * image - 1.0
 
-  # The image (strength < 1 or latent blending) and the masked image (inpainting UNet), in one
-  # sequence of per-image encoder passes.
+
+def _encode_inputs(models: DiffusionModels, image: jax.Array, binary_mask: jax.Array,
+                   noise: SamplerNoise, settings: SamplerSettings
+                   ) -> tuple[jax.Array | None, jax.Array | None]:
+  """(the image's latents, the masked image's latents), in one sequence of per-image encoder
+  passes: the first when starting from the image (strength < 1) or blending latents, the
+  second for an inpainting UNet, else None."""
+  pixels = 2.0 * image - 1.0
   needs_image_latents = settings.start_from_image or not models.inpainting_unet
   to_encode = []
   if needs_image_latents:
     to_encode.append((pixels, noise.image_posterior))
   if models.inpainting_unet:
     to_encode.append((pixels * (binary_mask < 0.5), noise.masked_image_posterior))
-  encoded = jnp.split(_encode(models, jnp.concatenate([images for images, _ in to_encode]),
-                              jnp.concatenate([draws for _, draws in to_encode])),
-                      len(to_encode))
-  image_latents = encoded[0] if needs_image_latents else None
-  text_states, text_embeds, batch_time_ids = _text_conditioning(
-      prompt, time_ids, batch, settings.classifier_free_guidance)
-  constants = _LoopConstants(
-      text_states=text_states, text_embeds=text_embeds, time_ids=batch_time_ids,
-      control=None if inputs.control is None else _control_image(models, inputs.control),
-      mask=downsample_mask(binary_mask, latent_height, latent_width),
-      masked_image_latents=encoded[-1] if models.inpainting_unet else None,
-      image_latents=image_latents, initial_noise=noise.latents)
+  encoded = jnp.split(
+      vae_lib.encode_to_latents(models.vae, models.vae_params,
+                                jnp.concatenate([images for images, _ in to_encode]),
+                                jnp.concatenate([draws for _, draws in to_encode])),
+      len(to_encode))
+  return (encoded[0] if needs_image_latents else None,
+          encoded[-1] if models.inpainting_unet else None)
 
-  if settings.start_from_image:
-    latents = schedule.add_noise(image_latents, noise.latents, 0)
-  else:
-    latents = noise.latents * schedule.init_noise_sigma
+
+def _loop_constants(models: DiffusionModels, prompt: PromptEmbeddings,
+                    time_ids: jax.Array | None, inputs: InpaintingInputs, noise: SamplerNoise,
+                    settings: SamplerSettings) -> _LoopConstants:
+  """What the steps read: the encoded images, the mask at latent resolution, the text rows of
+  the UNet batch and the control image."""
+  batch, height, width = inputs.image.shape[:3]
+  factor = models.latent_factor
+  binary_mask = mask_processing.binarize_mask(inputs.mask)
+  image_latents, masked_image_latents = _encode_inputs(models, inputs.image, binary_mask, noise,
+                                                       settings)
+  text_states, text_embeds, batch_time_ids = guidance_lib.text_conditioning(
+      prompt, time_ids, batch, settings.classifier_free_guidance)
+  control = None
+  if inputs.control is not None:
+    control = guidance_lib.control_image(inputs.control,
+                                         models.controlnet.config.conditioning_channels)
+  return _LoopConstants(
+      text_states=text_states, text_embeds=text_embeds, time_ids=batch_time_ids,
+      control=control,
+      mask=mask_processing.downsample_mask(binary_mask, height // factor, width // factor),
+      masked_image_latents=masked_image_latents, image_latents=image_latents,
+      initial_noise=noise.latents)
+
+
+def _controlnet_residuals(models: DiffusionModels, constants: _LoopConstants,
+                          settings: SamplerSettings, controlnet_conditioning_scale: jax.Array,
+                          model_input: jax.Array, batch_latents: jax.Array, timestep: jax.Array
+                          ) -> ControlNetResiduals:
+  """The ControlNet's residuals for the UNet batch `batch_latents` (`model_input` for both
+  halves under guidance)."""
+  controlnet = functools.partial(models.controlnet.apply, {"params": models.controlnet_params},
+                                 guess_mode=settings.guess_mode)
+  if settings.guess_mode and settings.classifier_free_guidance:
+    # The ControlNet sees only the conditional half; the unconditional half gets nothing.
+    conditional = lambda x: None if x is None else x[model_input.shape[0]:]
+    residuals = controlnet(model_input, timestep, conditional(constants.text_states),
+                           constants.control, controlnet_conditioning_scale,
+                           text_embeds=conditional(constants.text_embeds),
+                           time_ids=conditional(constants.time_ids))
+    return jax.tree.map(lambda r: jnp.concatenate([jnp.zeros_like(r), r]), residuals)
+  return controlnet(batch_latents, timestep, constants.text_states,
+                    guidance_lib.both_halves(constants.control, settings.classifier_free_guidance),
+                    controlnet_conditioning_scale, text_embeds=constants.text_embeds,
+                    time_ids=constants.time_ids)
+
+
+def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings: SamplerSettings,
+                   guidance_scale: jax.Array, controlnet_conditioning_scale: jax.Array,
+                   model_input: jax.Array, timestep: jax.Array) -> jax.Array:
+  """The guided noise (or v) prediction for the scheduler-scaled latents [B, h, w, C]."""
+  guided = settings.classifier_free_guidance
+  batch_latents = guidance_lib.both_halves(model_input, guided)
+  residuals = None
+  if models.controlnet is not None:
+    residuals = _controlnet_residuals(models, constants, settings, controlnet_conditioning_scale,
+                                      model_input, batch_latents, timestep)
+  unet_input = batch_latents
+  if models.inpainting_unet:
+    unet_input = jnp.concatenate(
+        [batch_latents, guidance_lib.both_halves(constants.mask, guided),
+         guidance_lib.both_halves(constants.masked_image_latents, guided)], axis=-1)
+  prediction = models.unet.apply({"params": models.unet_params}, unet_input, timestep,
+                                 constants.text_states, text_embeds=constants.text_embeds,
+                                 time_ids=constants.time_ids, control=residuals)
+  if not guided:
+    return prediction
+  return guidance_lib.classifier_free_guidance(prediction, guidance_scale)
+
+
+def _denoise(models: DiffusionModels, schedule: Schedule, constants: _LoopConstants,
+             guidance: guidance_lib.Guidance, settings: SamplerSettings, latents: jax.Array,
+             step_noise: jax.Array) -> jax.Array:
+  """The denoising loop under `lax.scan`, carrying only the latents [B, h, w, C] and the solver
+  state: the latents at the first step's noise level -> the clean latents.
+
+  Args:
+    step_noise: [B, S, h, w, C], each step's fresh noise (ancestral schedules).
+  """
   last_step = schedule.num_steps - 1
 
   def denoise(carry, step):
@@ -489,9 +334,43 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
       latents = (1.0 - constants.mask) * original + constants.mask * latents
     return (latents, solver_state), None
 
-  steps = (jnp.arange(schedule.num_steps), jnp.swapaxes(noise.steps, 0, 1))
+  steps = (jnp.arange(schedule.num_steps), jnp.swapaxes(step_noise, 0, 1))
   (latents, _), _ = jax.lax.scan(denoise, (latents, schedule.init_solver_state(latents)), steps)
-  generated = _decode(models, latents)
+  return latents
+
+
+@functools.partial(jax.jit, static_argnames=("settings",))
+def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings,
+           time_ids: jax.Array | None, inputs: InpaintingInputs, noise: SamplerNoise,
+           guidance: guidance_lib.Guidance, settings: SamplerSettings) -> jax.Array:
+  """Inpaints a batch: preprocessing, the denoising loop and decoding in one compiled program.
+
+  Args:
+    models: the networks and their parameters.
+    schedule: `solvers.make_schedule(config, num_inference_steps, strength)`; its step count S
+      is the number of steps run.
+    prompt: text conditioning with 1 or B rows (negative embeddings needed under guidance; SDXL
+      also the pooled embeddings).
+    time_ids: SDXL's [1 or B, 6] (original size, crop top-left, target size); None otherwise.
+    inputs: images, masks and control images (see `InpaintingInputs`).
+    noise: every random draw (`draw_noise`, or injected arrays for parity with a reference).
+    guidance: the traced guidance scale and per-step ControlNet scales [S].
+    settings: the static choices (see `SamplerSettings`).
+
+  Returns:
+    [B, H, W, 3] float32 images in [0, 1].
+  """
+  _check_inputs(models, inputs)
+  constants = _loop_constants(models, prompt, time_ids, inputs, noise, settings)
+  if settings.start_from_image:
+    latents = schedule.add_noise(constants.image_latents, noise.latents, 0)
+  else:
+    latents = noise.latents * schedule.init_noise_sigma
+  latents = _denoise(models, schedule, constants, guidance, settings, latents, noise.steps)
+  # diffusers' postprocess: [-1, 1] -> [0, 1].
+  decoded = vae_lib.decode_from_latents(models.vae, models.vae_params, latents)
+  generated = jnp.clip(decoded * 0.5 + 0.5, 0.0, 1.0)
   if settings.paste_back:
-    generated = paste_back(image, generated, blur_mask(mask, settings.mask_blur))
+    generated = mask_processing.paste_back(
+        inputs.image, generated, mask_processing.blur_mask(inputs.mask, settings.mask_blur))
   return generated

@@ -21,17 +21,14 @@ import numpy as np
 
 from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.attention import AttentionOptions
-from signerf_jax.diffusion.blocks import (ControlNetResiduals, DownBlock, MidBlock, UpBlock,
-                                          embed_time, example_inputs)
+from signerf_jax.diffusion.blocks import Backbone, ControlNetResiduals, UpBlock
 from signerf_jax.diffusion.layers import Conv2d, Dtype, GroupNorm
 from signerf_jax.errors import InputError
 
 
-class UNet2DCondition(nn.Module):
+class UNet2DCondition(Backbone):
   """The denoising UNet; configure it with `UNetConfig.from_dict(config_json)`."""
   config: model_configs.UNetConfig
-  attention: AttentionOptions = AttentionOptions()
-  compute_dtype: Dtype = jnp.float32
 
   @nn.compact
   def __call__(self, sample: jax.Array, timesteps: jax.Array, encoder_hidden_states: jax.Array,
@@ -52,54 +49,45 @@ class UNet2DCondition(nn.Module):
       [B, H, W, out_channels] float32.
     """
     config = self.config
-    options = dict(attention=self.attention, compute_dtype=self.compute_dtype)
-    batch = sample.shape[0]
     if sample.shape[-1] != config.in_channels:
       raise InputError(f"sample has {sample.shape[-1]} channels (NHWC) but the UNet takes "
                        f"{config.in_channels}", field="sample")
     if config.center_input_sample:
       sample = 2 * sample - 1.0
-    time_embedding = embed_time(config, timesteps, batch, text_embeds, time_ids,
-                                self.compute_dtype)
+    time_embedding = self.embed_time(timesteps, sample.shape[0], text_embeds, time_ids)
     context = encoder_hidden_states
-
-    x = Conv2d(config.block_out_channels[0], config.conv_in_kernel,
-               padding=config.conv_in_kernel // 2, compute_dtype=self.compute_dtype,
-               name="conv_in")(sample)
-    skips = [x]
-    for index in range(len(config.block_out_channels)):
-      x, block_skips = DownBlock(config, index, **options, name=f"down_blocks_{index}")(
-          x, time_embedding, context)
-      skips.extend(block_skips)
+    x, skips = self.down_path(self.input_convolution(sample), time_embedding, context)
     if control is not None:
       if len(control.down) != len(skips):
         raise InputError(f"{len(control.down)} down residuals for {len(skips)} UNet skips",
                          field="control")
       skips = [skip + residual for skip, residual in zip(skips, control.down)]
     if config.mid_block_type is not None:
-      x = MidBlock(config, **options, name="mid_block")(x, time_embedding, context)
+      x = self.middle(x, time_embedding, context)
     if control is not None:
       x = x + control.mid
+    x = self.up_path(x, skips, time_embedding, context)
+    x = nn.silu(GroupNorm(config.norm_num_groups, config.norm_eps, name="conv_norm_out")(x))
+    return Conv2d(config.out_channels, config.conv_out_kernel, padding=config.conv_out_kernel // 2,
+                  compute_dtype=self.compute_dtype, name="conv_out")(x)
 
+  def up_path(self, x: jax.Array, skips: list[jax.Array], time_embedding: jax.Array,
+              context: jax.Array) -> jax.Array:
+    """The up blocks (deepest first), each consuming its skips and upsampling to the size of
+    the skip before them."""
+    config = self.config
     last = len(config.block_out_channels) - 1
     for index in range(len(config.block_out_channels)):
       count = config.layers_per_block[last - index] + 1
       block_skips, skips = skips[-count:], skips[:-count]
       upsample_size = skips[-1].shape[1:3] if index < last else None
-      x = UpBlock(config, index, **options, name=f"up_blocks_{index}")(
+      x = UpBlock(config, index, self.attention, self.compute_dtype, name=f"up_blocks_{index}")(
           x, tuple(block_skips), time_embedding, context, upsample_size)
-
-    x = nn.silu(GroupNorm(config.norm_num_groups, config.norm_eps, name="conv_norm_out")(x))
-    return Conv2d(config.out_channels, config.conv_out_kernel, padding=config.conv_out_kernel // 2,
-                  compute_dtype=self.compute_dtype, name="conv_out")(x)
-
-  def example_inputs(self) -> dict[str, jax.ShapeDtypeStruct]:
-    """Abstract inputs of the smallest valid size, for shape inference (`weights`)."""
-    return example_inputs(self.config)
+    return x
 
 
 def load_unet(path: str | os.PathLike, dtype=np.float32, *, variant: str | None = None,
-              attention: AttentionOptions | None = None, compute_dtype: Dtype = jnp.float32
+              attention: AttentionOptions = AttentionOptions(), compute_dtype: Dtype = jnp.float32
               ) -> tuple[UNet2DCondition, dict]:
   """Builds the UNet described by a diffusers `unet/` directory and loads its safetensors.
 
@@ -107,7 +95,7 @@ def load_unet(path: str | os.PathLike, dtype=np.float32, *, variant: str | None 
     path: the `unet` component directory, or a pipeline directory containing `unet/`.
     dtype: dtype the parameters are stored in (fp16/bf16 checkpoints are converted exactly).
     variant: diffusers weight variant ("fp16" picks diffusion_pytorch_model.fp16.safetensors).
-    attention: attention evaluation options (default: `AttentionOptions()`, gin-configurable).
+    attention: attention evaluation options.
     compute_dtype: float32, or bfloat16 for bf16 matmuls/convolutions with float32 accumulation.
 
   Returns:
@@ -116,5 +104,5 @@ def load_unet(path: str | os.PathLike, dtype=np.float32, *, variant: str | None 
   directory = model_configs.component_directory(path, "unet")
   config = model_configs.UNetConfig.from_dict(model_configs.read_config(directory),
                                               directory / "config.json")
-  module = UNet2DCondition(config, attention or AttentionOptions(), compute_dtype)
+  module = UNet2DCondition(config, attention, compute_dtype)
   return module, weights.load_params(module, directory, dtype, variant)

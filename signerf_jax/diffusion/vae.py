@@ -4,7 +4,8 @@ Layout: images are NHWC [B, H, W, 3] in [-1, 1] (diffusers' convention; map [0, 
 2x - 1); latents are NHWC [B, H/8, W/8, latent_channels] for the usual four blocks. `encode`
 returns the posterior (`DiagonalGaussian`); the diffusion model works on
 `config.to_diffusion_latents(z)` = (z - shift_factor) * scaling_factor, and `decode` takes z
-back (`config.from_diffusion_latents`).
+back (`config.from_diffusion_latents`); `encode_to_latents` and `decode_from_latents` do both
+ways for a batch, one image at a time.
 
     module, params = load_vae("checkpoint/vae")
     posterior = module.apply({"params": params}, images, method=module.encode)
@@ -25,8 +26,8 @@ from flax import struct
 
 from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.attention import AttentionOptions, multi_head_attention
-from signerf_jax.diffusion.layers import (Conv2d, Downsample2D, Dtype, GroupNorm, ResnetBlock2D,
-                                          Upsample2D)
+from signerf_jax.diffusion.layers import Conv2d, Dtype, GroupNorm
+from signerf_jax.diffusion.resnet import Downsample2D, ResnetBlock2D, Upsample2D
 
 EPSILON = 1e-6  # diffusers' Encoder/Decoder use eps 1e-6 in every norm.
 # Tensor names of checkpoints saved before diffusers renamed the VAE's attention layers.
@@ -116,46 +117,59 @@ class ResnetStack(nn.Module):
     return x
 
 
-class Encoder(nn.Module):
-  """Images [B, H, W, in_channels] -> moments [B, h, w, 2 * latent_channels]."""
+class _Half(nn.Module):
+  """What the encoder and the decoder are built of: conv_in, resnet stacks from resolution to
+  resolution, the mid block and the output head (GroupNorm, SiLU, conv_out).
+
+  Its methods create submodules under diffusers' names, so a subclass calls them from its
+  compact `__call__`.
+  """
   config: model_configs.AutoencoderConfig
   attention: AttentionOptions = AttentionOptions()
   compute_dtype: Dtype = jnp.float32
+
+  def input_convolution(self, x: jax.Array, features: int) -> jax.Array:
+    return Conv2d(features, compute_dtype=self.compute_dtype, name="conv_in")(x)
+
+  def resolutions(self, x: jax.Array, channels: tuple[int, ...], num_layers: int, resample: str,
+                  prefix: str) -> jax.Array:
+    """One `ResnetStack` per entry of `channels`, resampling (`resample`) after all but the
+    last; named `<prefix>_<index>`."""
+    for index, block_channels in enumerate(channels):
+      x = ResnetStack(block_channels, num_layers, self.config.norm_num_groups,
+                      resample if index < len(channels) - 1 else None, self.compute_dtype,
+                      name=f"{prefix}_{index}")(x)
+    return x
+
+  def middle(self, x: jax.Array) -> jax.Array:
+    return MidBlock(self.config.norm_num_groups, self.config.mid_block_add_attention,
+                    self.attention, self.compute_dtype, name="mid_block")(x)
+
+  def output(self, x: jax.Array, features: int) -> jax.Array:
+    x = nn.silu(GroupNorm(self.config.norm_num_groups, EPSILON, name="conv_norm_out")(x))
+    return Conv2d(features, compute_dtype=self.compute_dtype, name="conv_out")(x)
+
+
+class Encoder(_Half):
+  """Images [B, H, W, in_channels] -> moments [B, h, w, 2 * latent_channels]."""
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    config, dtype = self.config, self.compute_dtype
-    channels, groups = config.block_out_channels, config.norm_num_groups
-    x = Conv2d(channels[0], compute_dtype=dtype, name="conv_in")(x)
-    for index, block_channels in enumerate(channels):
-      x = ResnetStack(block_channels, config.layers_per_block, groups,
-                      "down" if index < len(channels) - 1 else None, dtype,
-                      name=f"down_blocks_{index}")(x)
-    x = MidBlock(groups, config.mid_block_add_attention, self.attention, dtype,
-                 name="mid_block")(x)
-    x = nn.silu(GroupNorm(groups, EPSILON, name="conv_norm_out")(x))
-    return Conv2d(2 * config.latent_channels, compute_dtype=dtype, name="conv_out")(x)
+    channels = self.config.block_out_channels
+    x = self.input_convolution(x, channels[0])
+    x = self.resolutions(x, channels, self.config.layers_per_block, "down", "down_blocks")
+    return self.output(self.middle(x), 2 * self.config.latent_channels)
 
 
-class Decoder(nn.Module):
+class Decoder(_Half):
   """Latents [B, h, w, latent_channels] -> images [B, H, W, out_channels]."""
-  config: model_configs.AutoencoderConfig
-  attention: AttentionOptions = AttentionOptions()
-  compute_dtype: Dtype = jnp.float32
 
   @nn.compact
   def __call__(self, z: jax.Array) -> jax.Array:
-    config, dtype = self.config, self.compute_dtype
-    channels, groups = config.block_out_channels[::-1], config.norm_num_groups
-    x = Conv2d(channels[0], compute_dtype=dtype, name="conv_in")(z)
-    x = MidBlock(groups, config.mid_block_add_attention, self.attention, dtype,
-                 name="mid_block")(x)
-    for index, block_channels in enumerate(channels):
-      x = ResnetStack(block_channels, config.layers_per_block + 1, groups,
-                      "up" if index < len(channels) - 1 else None, dtype,
-                      name=f"up_blocks_{index}")(x)
-    x = nn.silu(GroupNorm(groups, EPSILON, name="conv_norm_out")(x))
-    return Conv2d(config.out_channels, compute_dtype=dtype, name="conv_out")(x)
+    channels = self.config.block_out_channels[::-1]
+    x = self.middle(self.input_convolution(z, channels[0]))
+    x = self.resolutions(x, channels, self.config.layers_per_block + 1, "up", "up_blocks")
+    return self.output(x, self.config.out_channels)
 
 
 class AutoencoderKL(nn.Module):
@@ -196,6 +210,33 @@ class AutoencoderKL(nn.Module):
                                             jnp.float32))
 
 
+# The two below run one image at a time (`lax.map`): at full resolution the VAE's activations
+# are the largest of a whole sampling run, and this keeps them independent of the batch size.
+
+
+def encode_to_latents(vae: AutoencoderKL, params: dict, images: jax.Array,
+                      posterior_noise: jax.Array) -> jax.Array:
+  """[N, H, W, C] images in [-1, 1] -> [N, h, w, latent] diffusion latents, sampling each
+  image's posterior with its standard-normal noise [N, h, w, latent]."""
+
+  def encode_one(image_and_noise):
+    image, noise = image_and_noise
+    posterior: DiagonalGaussian = vae.apply({"params": params}, image[None], method=vae.encode)
+    return vae.config.to_diffusion_latents(posterior.sample_from_noise(noise[None]))[0]
+
+  return jax.lax.map(encode_one, (images, posterior_noise))
+
+
+def decode_from_latents(vae: AutoencoderKL, params: dict, latents: jax.Array) -> jax.Array:
+  """[N, h, w, latent] diffusion latents -> [N, H, W, C] images in about [-1, 1]."""
+
+  def decode_one(one_latents):
+    z = vae.config.from_diffusion_latents(one_latents[None])
+    return vae.apply({"params": params}, z, method=vae.decode)[0]
+
+  return jax.lax.map(decode_one, latents)
+
+
 def _rename_legacy_attention(tensors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
   """Maps pre-0.14 diffusers VAE attention names (query, key, value, proj_attn) to current ones."""
   renamed = {}
@@ -209,7 +250,7 @@ def _rename_legacy_attention(tensors: dict[str, np.ndarray]) -> dict[str, np.nda
 
 
 def load_vae(path: str | os.PathLike, dtype=np.float32, *, variant: str | None = None,
-             attention: AttentionOptions | None = None, compute_dtype: Dtype = jnp.float32
+             attention: AttentionOptions = AttentionOptions(), compute_dtype: Dtype = jnp.float32
              ) -> tuple[AutoencoderKL, dict]:
   """Builds the AutoencoderKL of a diffusers `vae/` directory and loads its safetensors.
 
@@ -218,6 +259,6 @@ def load_vae(path: str | os.PathLike, dtype=np.float32, *, variant: str | None =
   directory = model_configs.component_directory(path, "vae")
   config = model_configs.AutoencoderConfig.from_dict(model_configs.read_config(directory),
                                                      directory / "config.json")
-  module = AutoencoderKL(config, attention or AttentionOptions(), compute_dtype)
+  module = AutoencoderKL(config, attention, compute_dtype)
   return module, weights.load_params(module, directory, dtype, variant,
                                      rename=_rename_legacy_attention)

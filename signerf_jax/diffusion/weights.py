@@ -42,31 +42,32 @@ def reference_name(path: FlaxPath) -> str:
   return ".".join(parts)
 
 
+def _reference_axes(path: FlaxPath, ndim: int) -> tuple[int, ...] | None:
+  """The Flax axes that diffusers stores first to last, for parameter `path` of `ndim` axes;
+  None when the layouts agree. Convolution kernels HWIO -> OIHW, dense [in, out] -> [out, in]."""
+  if path[-1] == "kernel" and ndim == 4:
+    return (3, 2, 0, 1)
+  if path[-1] == "kernel" and ndim == 2:
+    return (1, 0)
+  return None
+
+
 def reference_shape(path: FlaxPath, shape: tuple[int, ...]) -> tuple[int, ...]:
   """The shape diffusers stores for the Flax parameter `path` of shape `shape`."""
-  if path[-1] == "kernel" and len(shape) == 4:
-    return (shape[3], shape[2], shape[0], shape[1])
-  if path[-1] == "kernel" and len(shape) == 2:
-    return (shape[1], shape[0])
-  return tuple(shape)
+  axes = _reference_axes(path, len(shape))
+  return tuple(shape) if axes is None else tuple(shape[axis] for axis in axes)
 
 
 def from_reference_layout(path: FlaxPath, tensor: np.ndarray) -> np.ndarray:
   """A diffusers tensor rearranged into the Flax layout of parameter `path`."""
-  if path[-1] == "kernel" and tensor.ndim == 4:
-    return np.ascontiguousarray(tensor.transpose(2, 3, 1, 0))
-  if path[-1] == "kernel" and tensor.ndim == 2:
-    return np.ascontiguousarray(tensor.T)
-  return tensor
+  axes = _reference_axes(path, tensor.ndim)
+  return tensor if axes is None else np.ascontiguousarray(tensor.transpose(np.argsort(axes)))
 
 
 def to_reference_layout(path: FlaxPath, array: np.ndarray) -> np.ndarray:
   """A Flax parameter rearranged into diffusers' layout (the inverse of from_reference_layout)."""
-  if path[-1] == "kernel" and array.ndim == 4:
-    return np.ascontiguousarray(array.transpose(3, 2, 0, 1))
-  if path[-1] == "kernel" and array.ndim == 2:
-    return np.ascontiguousarray(array.T)
-  return array
+  axes = _reference_axes(path, array.ndim)
+  return array if axes is None else np.ascontiguousarray(array.transpose(axes))
 
 
 def abstract_params(module: nn.Module) -> dict[FlaxPath, jax.ShapeDtypeStruct]:

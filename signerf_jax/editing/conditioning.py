@@ -48,6 +48,10 @@ class Conditioning:
   def arrays(self) -> dict[str, np.ndarray]:
     return dataclasses.asdict(self)
 
+  def take(self, indices) -> "Conditioning":
+    """The cameras at `indices` ([K] int)."""
+    return Conditioning(**{name: array[indices] for name, array in self.arrays().items()})
+
   @classmethod
   def stack(cls, items) -> "Conditioning":
     """Single views (no leading axis) into one Conditioning."""

@@ -1,7 +1,8 @@
-"""What an edit does and how (gin): the settings every pipeline stage reads.
+"""What an edit does and how: the settings every pipeline stage reads.
 
-An edit is fully described by these gin-bound dataclasses (saved as the edit directory's
-config.gin); the command-line flags of `signerf edit` are shorthand for bindings of them:
+An edit is fully described by these dataclasses, which gin binds at the edge
+(`editing.commands.edit_settings` builds an `EditSettings` from the bindings, saved as the edit
+directory's config.gin); the command-line flags of `signerf edit` are shorthand for bindings:
 
   EditConfig       the inputs: dataset, original run, prompt, seed, model checkpoints, the sheet
                    to use, whether to fine-tune or retrain, the optional second iteration;
@@ -11,22 +12,26 @@ config.gin); the command-line flags of `signerf edit` are shorthand for bindings
   UpdateConfig     the image set update: views per device;
   FinetuneConfig   the NeRF update's losses (L1, optional LPIPS on rendered patches);
   EvaluationConfig the metrics and renders written at the end.
-Per-stage settings owned by other modules are gin-bound where they live:
-`pipeline.GenerationOptions` (the diffusion knobs; scoped `first_iteration/` and
-`second_iteration/` so the second iteration can stick closer to its input, as in the paper's
-table), `train.TrainConfig` (scoped `original/`, `finetune/` and `retrain/`) and
-`reference_cameras.place_reference_cameras`.
+`EditSettings` holds them with the settings owned by other modules: `GenerationOptions` (the
+diffusion knobs; gin scopes `first_iteration/` and `second_iteration/` so the second iteration
+can stick closer to its input, as in the paper's table), `TrainConfig` (scopes `original/`,
+`finetune/` and `retrain/`), `CapacityRules`, `ReferencePlacement`, `AttentionOptions` and
+`ConsistencySettings`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
-import gin
-
+from signerf_jax.diffusion.attention import AttentionOptions
+from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.errors import InputError
+from signerf_jax.geometry.reference_cameras import ReferencePlacement
+from signerf_jax.metrics.consistency import ConsistencySettings
+from signerf_jax.nerf.capacity import CapacityRules
+from signerf_jax.nerf.train import TrainConfig
 
 # The shipped model (diffusers layout), trained by the project (see default_model/). A path,
 # not an import: default_model sits above the library (it trains with the editing code).
@@ -34,9 +39,10 @@ DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[1] / "default_model" / "wei
 SELECTION_KINDS = ("box", "proxy")
 NERF_UPDATES = ("auto", "finetune", "retrain")
 PRIMITIVE_PREFIX = "primitive:"
+# The NeRF runs of an edit, each with its own TrainConfig (gin scope of the same name).
+TRAINING_RUNS = ("original", "finetune", "retrain")
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class EditConfig:
   """The inputs of an edit.
@@ -94,7 +100,6 @@ class EditConfig:
     return recipe or str(self.seed)
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class SelectionConfig:
   """Where to edit (paper, "Selection Modes").
@@ -159,7 +164,6 @@ class SelectionConfig:
                        field="proxy")
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class SheetConfig:
   """The reference sheet (paper, "Reference Sheet"; `editing.sheet`).
@@ -187,7 +191,6 @@ class SheetConfig:
   crop_max_upscale: float = 2.0
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class PreviewConfig:
   """The candidate sheets `signerf preview` shows side by side.
@@ -201,7 +204,6 @@ class PreviewConfig:
   recipes: tuple[str, ...] = ()
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class UpdateConfig:
   """The image set update (`editing.update`).
@@ -215,7 +217,6 @@ class UpdateConfig:
   views_per_device: int = 4
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class FinetuneConfig:
   """Losses of the NeRF update (`editing.finetune`); steps and learning rates are
@@ -245,7 +246,6 @@ class FinetuneConfig:
                        field="FinetuneConfig.region_margin")
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class EvaluationConfig:
   """What `signerf eval --edit` measures and writes.
@@ -264,6 +264,47 @@ class EvaluationConfig:
   independent_views: int = 12
   video_frames: int = 48
   video_fps: int = 12
+
+
+@dataclasses.dataclass(frozen=True)
+class EditSettings:
+  """Everything an edit reads, built once where gin is parsed and passed to every stage.
+
+  Attributes:
+    edit, selection, sheet, preview, update, finetune, evaluation: the configs above.
+    generation: the diffusion settings of the first and the second iteration.
+    training: TrainConfig of each run in TRAINING_RUNS.
+    capacity: the rules sizing a new NeRF (the original one, and a retrained one).
+    placement: how the reference cameras are placed around the selection.
+    attention: how the diffusion models evaluate attention (speed and memory, not results).
+    consistency: the consistency measurement of the evaluation.
+    gin_config: the gin bindings these settings came from (config.gin, provenance).
+  """
+
+  edit: EditConfig
+  selection: SelectionConfig
+  sheet: SheetConfig = SheetConfig()
+  preview: PreviewConfig = PreviewConfig()
+  update: UpdateConfig = UpdateConfig()
+  finetune: FinetuneConfig = FinetuneConfig()
+  evaluation: EvaluationConfig = EvaluationConfig()
+  generation: tuple[GenerationOptions, GenerationOptions] = (GenerationOptions(),
+                                                             GenerationOptions())
+  training: Mapping[str, TrainConfig] = dataclasses.field(
+      default_factory=lambda: {run: TrainConfig() for run in TRAINING_RUNS})
+  capacity: CapacityRules = CapacityRules()
+  placement: ReferencePlacement = ReferencePlacement()
+  attention: AttentionOptions = AttentionOptions()
+  consistency: ConsistencySettings = ConsistencySettings()
+  gin_config: str = ""
+
+  def __post_init__(self):
+    if set(self.training) != set(TRAINING_RUNS):
+      raise InputError(f"needs a TrainConfig for each of {TRAINING_RUNS}, got "
+                       f"{sorted(self.training)}", field="EditSettings.training")
+
+  def generation_options(self, iteration: int) -> GenerationOptions:
+    return self.generation[0 if iteration == 1 else 1]
 
 
 def as_json(config: Any) -> dict[str, Any]:

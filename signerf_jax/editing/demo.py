@@ -19,10 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-import gin
-
 from signerf_jax import configs, files
-from signerf_jax.data import synthetic
+from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.editing import commands
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR, PRIMITIVE_PREFIX
 from signerf_jax.errors import InputError
@@ -30,7 +28,6 @@ from signerf_jax.errors import InputError
 SPOT_COW = Path(synthetic.DEFAULT_MESH_DIRECTORY) / "spot" / "spot_triangulated.obj"
 
 
-@gin.configurable("demo")
 @dataclasses.dataclass(frozen=True)
 class DemoSettings:
   """The demo's scene and edit (gin: `demo.<field>`).
@@ -72,12 +69,16 @@ def model_directory(model: str | None) -> str:
 
 def ensure_scene(directory: Path, seed: int) -> dict[str, Any]:
   """The scene.json of the synthetic scene in `directory`, generated first unless it is there
-  (with the gin-bound `synthetic_cameras` rig)."""
-  if not (directory / synthetic.SCENE_FILE_NAME).is_file():
-    dataset, _ = synthetic.generate(directory, seed=seed)
+  (with the gin-bound `synthetic_scene` settings and `synthetic_cameras` rig, whose bindings
+  are saved beside it)."""
+  if not (directory / synthetic_render.SCENE_FILE_NAME).is_file():
+    dataset, _ = synthetic_render.generate(directory, seed=seed,
+                                           settings=configs.build(synthetic.SceneSettings),
+                                           rig=configs.build(synthetic_render.CameraRig))
+    configs.save_gin_config(directory)
     print(f"signerf demo: synthetic scene of {dataset.num_images} views "
           f"({dataset.width}x{dataset.height} px) written to {directory}", flush=True)
-  return files.read_json(directory / synthetic.SCENE_FILE_NAME)
+  return files.read_json(directory / synthetic_render.SCENE_FILE_NAME)
 
 
 def edit_bindings(scene_dir: Path, scene: dict[str, Any], settings: DemoSettings, prompt: str,
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
   out = Path(args.out)
   gin_files = ["demo", *args.gin_file]
   configs.parse_gin(gin_files, args.gin_param)
-  settings = DemoSettings()
+  settings = configs.build(DemoSettings)
   model = model_directory(args.model)
   scene_dir = out / "scene"
   scene = ensure_scene(scene_dir, settings.scene_seed)

@@ -1,7 +1,7 @@
 """The edited image set as a nerfstudio dataset any nerfstudio method can train on.
 
 `write_edited_dataset` writes, next to the standard nerfstudio files of
-`data.nerfstudio.write_nerfstudio` (images/ holding the edited views, transforms.json with the
+`data.write_nerfstudio` (images/ holding the edited views, transforms.json with the
 cameras in the scene frame and `applied_transform` back to the source frame, masks/ only when
 the source dataset had training masks):
   originals/      the source images, frame for frame;
@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.data import nerfstudio
+from signerf_jax.data import nerfstudio, nerfstudio_writer
 from signerf_jax.data.dataset import Dataset
 
 EXTRA_FOLDERS = {"originals": "originals", "edit_masks": "edit_masks", "control": "control",
@@ -60,4 +60,4 @@ def write_edited_dataset(directory: str | os.PathLike, source: Dataset, edited_i
   record = dict(provenance)
   record["files"] = {name: f"{folder}/frame_NNNNN.{'exr' if name == 'control_depth' else 'png'}"
                      for name, folder in EXTRA_FOLDERS.items()}
-  return nerfstudio.write_nerfstudio(directory, edited, provenance=record)
+  return nerfstudio_writer.write_nerfstudio(directory, edited, provenance=record)

@@ -30,7 +30,7 @@ from signerf_jax.editing import crops
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator
 from signerf_jax.editing.update import TILE_FILL_COLOR, SlotViews
-from signerf_jax.metrics import colors, consistency
+from signerf_jax.metrics import colors, consistency, silhouettes
 
 # A pixel counts as changed by the edit when its colour moved by more than this (mean over RGB).
 CHANGE_THRESHOLD = 0.1
@@ -60,10 +60,11 @@ def independent_edits(generator: Generator, layout: sheet_lib.SheetLayout, views
 
 
 def consistency_comparison(image_sets: dict[str, np.ndarray], cameras: camera_lib.Cameras,
-                           masks: np.ndarray) -> dict[str, Any]:
+                           masks: np.ndarray, settings: consistency.ConsistencySettings
+                           ) -> dict[str, Any]:
   """Verified correspondences of each image set (same views, cameras and keypoint masks), and
   the relative change of every set against the "original" one."""
-  reports = {name: consistency.image_set_consistency(images, cameras, masks)
+  reports = {name: consistency.image_set_consistency(images, cameras, masks, settings)
              for name, images in image_sets.items()}
   result = {name: report.summary() for name, report in reports.items()}
   result["relative_to_original"] = {
@@ -90,6 +91,7 @@ def shape_adherence(original: np.ndarray, edited: np.ndarray, selected: np.ndarr
   """Mean IoU over views between the changed pixels (inside the inpainting mask) and the
   proxy's visible silhouette `selected`; None when no view shows the proxy."""
   changed = (np.mean(np.abs(edited - original), axis=-1) > CHANGE_THRESHOLD) & (masks > 0)
-  ious = [np.sum(changed[index] & selected[index]) / np.sum(changed[index] | selected[index])
-          for index in range(len(original)) if selected[index].any()]
-  return float(np.mean(ious)) if ious else None
+  shown = np.any(selected, axis=(1, 2))
+  if not shown.any():
+    return None
+  return float(np.mean(silhouettes.silhouette_iou(changed[shown], selected[shown])))

@@ -5,8 +5,8 @@ optimisers and an LPIPS loss for consistency, and trains a new NeRF from scratch
 objects. By default both update only an *edit region* (`FinetuneConfig.edit_region`, see
 `nerf.model`): the selection's box, grown by a margin, rendered by the updated field over the
 frozen original field everywhere else, so that what the edited views disagree on cannot become
-floaters over the background. Retraining is ordinary `nerf.train.train` on the edited dataset
-(a fresh field, inside the region when there is one). Fine-tuning starts from the original
+floaters over the background. Retraining is ordinary `nerf.training_run.train` on the edited
+dataset (a fresh field, inside the region when there is one). Fine-tuning starts from the original
 parameters with a fresh optimiser state and occupancy grid (`train.init_state`) and minimises,
 per step,
 
@@ -23,7 +23,7 @@ a pruned cell gets no samples, so no gradient to become dense. Inserted content 
 the original scene was empty, so the cells of the edited region (`region_cells`) are kept
 unvisited, i.e. always sampled, throughout fine-tuning; elsewhere pruning works as usual.
 
-`finetune` keeps `train.train`'s run-directory contract (config.gin, model.json, a resumable
+`finetune` keeps `training_run.train`'s run-directory contract (model.json, a resumable
 checkpoint), so `signerf render` and `signerf eval --run` work on the result.
 """
 
@@ -39,11 +39,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from signerf_jax import camera, configs
+from signerf_jax import camera, checkpoints
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import lpips
-from signerf_jax.nerf import checkpoint, losses, occupancy, train
+from signerf_jax.nerf import losses, occupancy, train, training_run
 from signerf_jax.nerf import model as nerf_model
 
 
@@ -163,8 +163,8 @@ def _keep_sampled(state: train.TrainState, cells) -> train.TrainState:
 
 
 @dataclasses.dataclass
-class FinetuneTrainer(train.Trainer):
-  """`train.Trainer` with the fine-tuning step (same loop, checkpoints and progress).
+class FinetuneTrainer(training_run.Trainer):
+  """`training_run.Trainer` with the fine-tuning step (same loop, checkpoints and progress).
 
   Attributes:
     loss_settings: LPIPS weight and patch size.
@@ -230,15 +230,14 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
                        field="FinetuneConfig.patch_size")
   run_dir = Path(run_dir)
   run_dir.mkdir(parents=True, exist_ok=True)
-  configs.save_gin_config(run_dir)
   trainer = FinetuneTrainer(model, config, train.TrainingData.from_dataset(dataset),
                             train.init_state(model, config, init_variables),
                             loss_settings=loss_settings, lpips_params=lpips_params,
                             editable_cells=None if edited_bounds is None
                             else region_cells(model, edited_bounds))
-  if checkpoint.has_checkpoint(run_dir):
+  if checkpoints.has_checkpoint(run_dir):
     trainer.restore(run_dir)
   else:
-    train.write_model_file(run_dir, model, dataset, data_options)
+    training_run.write_model_file(run_dir, model, dataset, data_options)
   trainer.run(run_dir=run_dir, progress=progress)
   return trainer

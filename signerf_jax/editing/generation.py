@@ -33,6 +33,7 @@ from jax.sharding import Mesh
 
 from signerf_jax import files, parallel
 from signerf_jax.diffusion import pipeline as pipeline_lib
+from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
 
@@ -105,8 +106,10 @@ class Generator:
 
 def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str,
                    negative_prompt: str, options: pipeline_lib.GenerationOptions,
-                   views_per_device: int, mesh: Mesh | None = None) -> Generator:
-  """Loads a diffusers ControlNet inpainting pipeline (and an optional separate ControlNet)."""
+                   views_per_device: int, attention: AttentionOptions = AttentionOptions(),
+                   mesh: Mesh | None = None) -> Generator:
+  """Loads a diffusers ControlNet inpainting pipeline (and an optional separate ControlNet);
+  `attention` says how its models evaluate attention."""
   if not Path(model).is_dir():
     raise InputError("diffusion model directory not found (pass --model, a diffusers "
                      "inpainting pipeline)", model, "model")
@@ -114,7 +117,8 @@ def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str
     raise InputError(f"must be at least 1, got {views_per_device}",
                      field="UpdateConfig.views_per_device")
   pipeline = pipeline_lib.load_pipeline(model, controlnet=controlnet or None,
-                                        scheduler_kind=scheduler_kind or None)
+                                        scheduler_kind=scheduler_kind or None,
+                                        attention=attention)
   if pipeline.models.controlnet is None:
     raise InputError("the pipeline has no ControlNet: SIGNeRF conditions on depth (pass "
                      "--controlnet)", model, "controlnet")

@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import gin
 import jax
 import jax.numpy as jnp
 
@@ -30,7 +29,6 @@ LATENT_FACTOR = 8
 EMPTY_SLOT_COLOR = 0.5
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class SheetLayout:
   """Where the tiles and the empty slot go. Hashable, so it can be a static jit argument.

@@ -33,6 +33,7 @@ import numpy as np
 from flax import struct
 
 from signerf_jax import camera as camera_lib
+from signerf_jax import lens
 from signerf_jax.geometry import mesh as mesh_lib
 
 # A ray hits a triangle when its barycentric coordinates are >= -tolerance (relative to the
@@ -77,7 +78,7 @@ def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index,
       tiles by repeating the last row and column, so padding never widens a tile's ray range.
     on_plane: [tiles_down, tiles_across, tile_size * tile_size] bool, the ray meets the z = 1
       plane: all but a fisheye's rays 90 degrees or more off the axis, which hit nothing here
-      (their z-depth would not be positive; `camera.undistort` clamps their coordinates).
+      (their z-depth would not be positive; `lens.undistort` clamps their coordinates).
   """
   tiles_down = -(-cameras.height // tile_size)
   tiles_across = -(-cameras.width // tile_size)
@@ -90,13 +91,13 @@ def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index,
   distortion = cameras.distortion[camera_index]
   # Same rays as `camera.pixel_rays`.
   if cameras.fisheye:
-    x, y = camera_lib.undistort(x_distorted, y_distorted, distortion, fisheye=True)
-    on_plane = camera_lib.fisheye_angle(x_distorted, y_distorted,
-                                        distortion) < camera_lib.MAX_PLANE_ANGLE
+    x, y = lens.undistort(x_distorted, y_distorted, distortion, fisheye=True)
+    on_plane = lens.fisheye_angle(x_distorted, y_distorted,
+                                        distortion) < lens.MAX_PLANE_ANGLE
   else:
     # The Newton iterations are skipped for an ideal pinhole.
     x, y = jax.lax.cond(jnp.any(distortion != 0),
-                        lambda: camera_lib.undistort(x_distorted, y_distorted, distortion),
+                        lambda: lens.undistort(x_distorted, y_distorted, distortion),
                         lambda: (x_distorted, y_distorted))
     on_plane = jnp.ones_like(x, bool)
   plane = jnp.stack([x, y], -1).reshape(tiles_down, tile_size, tiles_across, tile_size, 2)
@@ -169,6 +170,44 @@ def _pair_counts(first, last, num_triangles):
   return jnp.where(jnp.arange(first.shape[0]) < num_triangles, size[:, 0] * size[:, 1], 0)
 
 
+def _pair_depths(corners: jax.Array, triangle: jax.Array, pixel_plane: jax.Array,
+                 candidate: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """Ray-triangle intersections of (triangle, tile) pairs.
+
+  In the camera frame every ray starts at 0 with direction d = (x, y, 1), so the ray parameter
+  t is the z-depth. Moller-Trumbore against (v0, v0 + e1, v0 + e2) with the ray-independent
+  parts precomputed per triangle:
+    det = d . (e2 x e1),  u = d . (e2 x s) / det,  v = d . (s x e1) / det,
+    t = e2 . (s x e1) / det,  with s = -v0.
+
+  Args:
+    corners: [F, 3, 3] the triangles in the camera frame (OpenCV axes).
+    triangle: [C] int32, each pair's triangle.
+    pixel_plane: [C, P, 2] z = 1 plane coordinates of the pixels of each pair's tile.
+    candidate: [C, P] bool, pixels that may be hit (a real pair, a pixel with a plane point).
+  Returns:
+    hits [C, P] bool and depths [C, P] z-depth (+inf where nothing is hit).
+  """
+  start = -corners[:, 0]
+  edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+  start_cross_edge1 = jnp.cross(start, edge1)
+  normals = jnp.stack([jnp.cross(edge2, edge1), jnp.cross(edge2, start), start_cross_edge1],
+                      1)[triangle]  # [C, 3 (det, u, v), 3]
+  t_numerator = jnp.sum(edge2 * start_cross_edge1, axis=-1)[triangle][:, None]
+  # d . n = x n_x + y n_y + n_z, for the determinant, u and v normals at once.
+  products = (jnp.einsum("cpk,cnk->cnp", pixel_plane, normals[..., :2])
+              + normals[..., 2:3])  # [C, 3, P]
+  determinant = products[:, 0]
+  # Fold the determinant's sign into the numerators so no division decides a hit.
+  sign = jnp.where(determinant < 0, -1.0, 1.0)
+  scale = jnp.abs(determinant)
+  tolerance = BARYCENTRIC_TOLERANCE * scale
+  u, v, t = products[:, 1] * sign, products[:, 2] * sign, t_numerator * sign
+  hits = (candidate & (scale > 0) & (u >= -tolerance) & (v >= -tolerance)
+          & (u + v <= scale + tolerance) & (t > 0))
+  return hits, jnp.where(hits, t / jnp.where(scale > 0, scale, 1.0), jnp.inf)
+
+
 def _single_camera_depth(triangles: jax.Array, num_triangles, cameras: camera_lib.Cameras,
                          camera_index, tile_size: int, capacity: int) -> MeshDepth:
   """Mesh depth for one camera; the first `num_triangles` of [F, 3, 3] `triangles` count."""
@@ -188,30 +227,8 @@ def _single_camera_depth(triangles: jax.Array, num_triangles, cameras: camera_li
   tile_column = jnp.clip(first[triangle, 0] + local % block_width, 0, tiles_across - 1)
   tile_row = jnp.clip(first[triangle, 1] + local // block_width, 0, tiles_down - 1)
 
-  # In the camera frame every ray starts at 0 with direction d = (x, y, 1), so the ray parameter
-  # t is the z-depth. Moller-Trumbore against (v0, v0 + e1, v0 + e2) with the ray-independent
-  # parts precomputed per triangle:
-  #   det = d . (e2 x e1),  u = d . (e2 x s) / det,  v = d . (s x e1) / det,
-  #   t = e2 . (s x e1) / det,  with s = -v0.
-  start = -corners[:, 0]
-  edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-  start_cross_edge1 = jnp.cross(start, edge1)
-  normals = jnp.stack([jnp.cross(edge2, edge1), jnp.cross(edge2, start), start_cross_edge1],
-                      1)[triangle]  # [C, 3 (det, u, v), 3]
-  t_numerator = jnp.sum(edge2 * start_cross_edge1, axis=-1)[triangle][:, None]
-  pixel_plane = plane[tile_row, tile_column]  # [C, P, 2]
-  # d . n = x n_x + y n_y + n_z, for the determinant, u and v normals at once.
-  products = (jnp.einsum("cpk,cnk->cnp", pixel_plane, normals[..., :2])
-              + normals[..., 2:3])  # [C, 3, P]
-  determinant = products[:, 0]
-  # Fold the determinant's sign into the numerators so no division decides a hit.
-  sign = jnp.where(determinant < 0, -1.0, 1.0)
-  scale = jnp.abs(determinant)
-  tolerance = BARYCENTRIC_TOLERANCE * scale
-  u, v, t = products[:, 1] * sign, products[:, 2] * sign, t_numerator * sign
-  hits = (valid[:, None] & on_plane[tile_row, tile_column] & (scale > 0) & (u >= -tolerance)
-          & (v >= -tolerance) & (u + v <= scale + tolerance) & (t > 0))
-  depths = jnp.where(hits, t / jnp.where(scale > 0, scale, 1.0), jnp.inf)
+  hits, depths = _pair_depths(corners, triangle, plane[tile_row, tile_column],
+                              valid[:, None] & on_plane[tile_row, tile_column])
 
   pixel = ((tile_row * tiles_across + tile_column)[:, None] * pixels_per_tile
            + jnp.arange(pixels_per_tile))  # [C, P] flat index into the tiled buffer

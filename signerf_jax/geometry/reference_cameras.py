@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import gin
 import jax
 import numpy as np
 
@@ -173,11 +172,53 @@ def _dataset_views_of_selection(dataset_cameras: camera_lib.Cameras, points: np.
   return azimuth[away], elevation[away], distance[away]
 
 
-@gin.configurable(denylist=["dataset_cameras", "selection_points"])
+@dataclasses.dataclass(frozen=True)
+class ReferencePlacement:
+  """How reference cameras are placed around the selection (gin: `ReferencePlacement.<field>`;
+  see the module docstring).
+
+  Attributes:
+    up: (x, y, z) scene up direction (any length); None: the dataset cameras' mean up vector.
+    neighbours: dataset cameras (nearest in azimuth) each reference camera takes its elevation
+      and distance from.
+    min_fill, max_fill: bounds on the fraction of the frame's area the selection's bounding
+      sphere may cover (0 < min_fill <= max_fill < 1).
+    min_arc_degrees: the azimuth arc (degrees) used when the dataset cameras cover less.
+  """
+
+  up: tuple[float, float, float] | None = None
+  neighbours: int = 3
+  min_fill: float = 0.25
+  max_fill: float = 0.6
+  min_arc_degrees: float = 30.0
+
+  def __post_init__(self):
+    if self.neighbours < 1:
+      raise InputError(f"need at least one, got {self.neighbours}",
+                       field="ReferencePlacement.neighbours")
+    if not 0 < self.min_fill <= self.max_fill < 1:
+      raise InputError(f"need 0 < min_fill <= max_fill < 1, got {self.min_fill}, "
+                       f"{self.max_fill}", field="ReferencePlacement.min_fill")
+
+
+def _reference_views(azimuth, elevation, distance, count: int, placement: ReferencePlacement
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """[count] azimuths, elevations (radians) and distances of the reference cameras from the
+  dataset cameras' own (steps 2 and 3 of the module docstring; distances not yet clipped)."""
+  start, arc = _covered_arc(azimuth, np.deg2rad(placement.min_arc_degrees))
+  if 2 * np.pi - arc <= 2 * np.pi / count:
+    # The uncovered gap is narrower than the spacing the cameras would get: all around.
+    arc = 2 * np.pi
+  reference_azimuth = start + arc * (np.arange(count) + 0.5) / count
+  angular_gap = np.abs(np.angle(np.exp(1j * (reference_azimuth[:, None] - azimuth[None]))))
+  nearest = np.argsort(angular_gap, axis=1, kind="stable")[:, :placement.neighbours]
+  return (reference_azimuth, np.median(elevation[nearest], axis=1),
+          np.median(distance[nearest], axis=1))
+
+
 def place_reference_cameras(
-    dataset_cameras: camera_lib.Cameras, selection_points, count: int = 5, up=None,
-    neighbours: int = 3, min_fill: float = 0.25, max_fill: float = 0.6,
-    min_arc_degrees: float = 30.0, width: int | None = None,
+    dataset_cameras: camera_lib.Cameras, selection_points, count: int = 5,
+    placement: ReferencePlacement = ReferencePlacement(), width: int | None = None,
     height: int | None = None) -> tuple[camera_lib.Cameras, ReferenceCameraReport]:
   """Places `count` reference cameras around the selection (see the module docstring).
 
@@ -185,13 +226,8 @@ def place_reference_cameras(
     dataset_cameras: the N dataset cameras.
     selection_points: [K, 3] points spanning the selection (box corners, proxy vertices).
     count: M, the number of reference cameras.
-    up: [3] scene up direction; default: the dataset cameras' mean up vector.
-    neighbours: dataset cameras (nearest in azimuth) each reference camera takes its elevation
-      and distance from.
-    min_fill, max_fill: bounds on the fraction of the frame's area the selection's bounding
-      sphere may cover.
-    min_arc_degrees: the azimuth arc used when the dataset cameras cover less.
-    width, height: reference image size; default the dataset's.
+    placement: up direction, neighbours, fill bounds and minimum arc.
+    width, height: reference image size in pixels; default the dataset's.
   Returns:
     (reference cameras, report).
   Raises:
@@ -199,39 +235,25 @@ def place_reference_cameras(
   """
   if count < 1:
     raise InputError(f"need at least one reference camera, got {count}", field="count")
-  if not 0 < min_fill <= max_fill < 1:
-    raise InputError(f"need 0 < min_fill <= max_fill < 1, got {min_fill}, {max_fill}",
-                     field="fill")
   points = np.asarray(selection_points, np.float64).reshape(-1, 3)
   center, radius = selection_sphere(points)
-  up = _unit_up(dataset_cameras, up)
-  azimuth, elevation, distance = _dataset_views_of_selection(dataset_cameras, points, up)
-
-  start, arc = _covered_arc(azimuth, np.deg2rad(min_arc_degrees))
-  if 2 * np.pi - arc <= 2 * np.pi / count:
-    # The uncovered gap is narrower than the spacing the cameras would get: all around.
-    arc = 2 * np.pi
-  reference_azimuth = start + arc * (np.arange(count) + 0.5) / count
-  angular_gap = np.abs(np.angle(np.exp(1j * (reference_azimuth[:, None] - azimuth[None]))))
-  nearest = np.argsort(angular_gap, axis=1, kind="stable")[:, :neighbours]
-  reference_elevation = np.median(elevation[nearest], axis=1)
-  reference_distance = np.median(distance[nearest], axis=1)
+  up = _unit_up(dataset_cameras, placement.up)
+  azimuth, elevation, distance = _reference_views(
+      *_dataset_views_of_selection(dataset_cameras, points, up), count, placement)
 
   width = dataset_cameras.width if width is None else int(width)
   height = dataset_cameras.height if height is None else int(height)
   fx = float(np.median(np.asarray(dataset_cameras.fx))) * width / dataset_cameras.width
   fy = float(np.median(np.asarray(dataset_cameras.fy))) * height / dataset_cameras.height
   focal = (fx + fy) / 2
-  nearest_allowed = _fill_distance(max_fill, radius, focal, width, height)
-  farthest_allowed = _fill_distance(min_fill, radius, focal, width, height)
-  reference_distance = np.clip(reference_distance, nearest_allowed, farthest_allowed)
+  distance = np.clip(distance, _fill_distance(placement.max_fill, radius, focal, width, height),
+                     _fill_distance(placement.min_fill, radius, focal, width, height))
 
   first, second = _azimuth_basis(up)
-  directions = (np.cos(reference_elevation)[:, None]
-                * (np.cos(reference_azimuth)[:, None] * first
-                   + np.sin(reference_azimuth)[:, None] * second)
-                + np.sin(reference_elevation)[:, None] * up)
-  eyes = center + reference_distance[:, None] * directions
+  directions = (np.cos(elevation)[:, None]
+                * (np.cos(azimuth)[:, None] * first + np.sin(azimuth)[:, None] * second)
+                + np.sin(elevation)[:, None] * up)
+  eyes = center + distance[:, None] * directions
   camera_to_world = _look_at(eyes.astype(np.float32), center.astype(np.float32),
                              up.astype(np.float32))
   cameras = camera_lib.Cameras.create(np.asarray(camera_to_world), fx=fx, fy=fy, width=width,

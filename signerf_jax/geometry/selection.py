@@ -34,6 +34,7 @@ from flax import struct
 
 from signerf_jax import camera as camera_lib
 from signerf_jax.errors import InputError
+from signerf_jax.nerf import sampling
 
 DEPTH_KINDS = ("z", "distance")
 MASK_MODES = ("surface", "silhouette")
@@ -86,33 +87,6 @@ class Selection:
 
   mask: jax.Array
   control_depth: jax.Array
-
-
-def ray_box_interval(origins, directions, minimum, maximum):
-  """Where rays are inside an axis-aligned box (slab test).
-
-  Robust to direction components that are exactly zero (the ray is parallel to a slab: inside it
-  for every t, or never) and to origins inside the box (the interval starts at 0).
-
-  Args:
-    origins, directions: [..., 3]; directions need not be unit (t is in their units).
-    minimum, maximum: [3] box corners.
-  Returns:
-    entry, exit: [...] ray parameters with 0 <= entry; meaningful where `hits`.
-    hits: [...] bool, the ray (t >= 0) meets the box (touching counts).
-  """
-  parallel = directions == 0
-  safe_directions = jnp.where(parallel, 1.0, directions)
-  to_minimum = (minimum - origins) / safe_directions
-  to_maximum = (maximum - origins) / safe_directions
-  inside_slab = (origins >= minimum) & (origins <= maximum)
-  slab_entry = jnp.where(parallel, jnp.where(inside_slab, -jnp.inf, jnp.inf),
-                         jnp.minimum(to_minimum, to_maximum))
-  slab_exit = jnp.where(parallel, jnp.where(inside_slab, jnp.inf, -jnp.inf),
-                        jnp.maximum(to_minimum, to_maximum))
-  entry = jnp.maximum(jnp.max(slab_entry, axis=-1), 0.0)
-  exit_ = jnp.min(slab_exit, axis=-1)
-  return entry, exit_, entry <= exit_
 
 
 def surface_distance(depth, cos_to_optical_axis, accumulation=None, depth_kind: str = "z",
@@ -172,8 +146,8 @@ def shape_selection(cameras: camera_lib.Cameras, box: Box, depth, accumulation=N
   def one_camera(rays, depth, accumulation):
     distance = surface_distance(depth, rays.cos_to_optical_axis, accumulation, depth_kind,
                                 min_accumulation)
-    entry, exit_, hits = ray_box_interval(rays.origins, rays.directions, box.minimum,
-                                          box.maximum)
+    entry, exit_, hits = sampling.ray_box_interval(rays.origins, rays.directions, box.minimum,
+                                                   box.maximum)
     box_visible = hits & (distance >= entry)
     mask = box_visible & (distance <= exit_) if mask_mode == "surface" else box_visible
     control = jnp.where(box_visible, jnp.minimum(distance, exit_), distance)

@@ -32,10 +32,10 @@ import dataclasses
 from typing import Any
 
 import cv2
-import gin
 import numpy as np
 
 from signerf_jax import camera as camera_lib
+from signerf_jax import lens
 from signerf_jax.errors import InputError
 
 NEIGHBOUR_MODES = ("distance", "angle", "index")
@@ -43,7 +43,6 @@ NEIGHBOUR_MODES = ("distance", "angle", "index")
 MIN_MATCHES_FOR_FUNDAMENTAL = 8
 
 
-@gin.configurable("consistency")
 @dataclasses.dataclass(frozen=True)
 class ConsistencySettings:
   """How views are paired, matched and verified (gin: `consistency.<field>`).
@@ -171,18 +170,17 @@ def _detection_mask(mask: np.ndarray, dilation_pixels: int) -> np.ndarray:
   return mask
 
 
-def detect_features(images, masks=None, settings: ConsistencySettings | None = None
+def detect_features(images, masks=None, settings: ConsistencySettings = ConsistencySettings()
                     ) -> list[tuple[np.ndarray, np.ndarray]]:
   """SIFT keypoints and descriptors of each view.
 
   Args:
     images: [N, H, W, 3] float in [0, 1] or uint8.
     masks: optional [N, H, W] selection masks; keypoints are kept inside their dilation only.
-    settings: None for the gin-bound defaults.
+    settings: `max_keypoints` and `mask_dilation_pixels` apply.
   Returns:
     per view, (keypoints [K, 2] float64 (x, y) in OpenCV pixels, descriptors [K, 128] float32).
   """
-  settings = settings or ConsistencySettings()
   sift = cv2.SIFT_create(nfeatures=settings.max_keypoints)
   features = []
   for index, image in enumerate(images):
@@ -222,12 +220,12 @@ def ideal_pixels(cameras: camera_lib.Cameras, keypoints: list[np.ndarray]) -> li
   """Per view, [K, 3] homogeneous undistorted pixel positions (this project's convention, pixel
   centres at +0.5) of OpenCV keypoints [K, 2]; all views are undistorted in one call (a
   fisheye's keypoints 90 degrees or more off its axis have no pinhole position: they come back
-  clamped, see `camera.undistort`)."""
+  clamped, see `lens.undistort`)."""
   view = np.concatenate([np.full(len(points), index) for index, points in enumerate(keypoints)])
   points = np.concatenate(keypoints).reshape(-1, 2) + 0.5
   fx, fy = (np.asarray(value, np.float64)[view] for value in (cameras.fx, cameras.fy))
   cx, cy = (np.asarray(value, np.float64)[view] for value in (cameras.cx, cameras.cy))
-  x, y = camera_lib.undistort((points[:, 0] - cx) / fx, (points[:, 1] - cy) / fy,
+  x, y = lens.undistort((points[:, 0] - cx) / fx, (points[:, 1] - cy) / fy,
                               np.asarray(cameras.distortion)[view], cameras.fisheye)
   ideal = np.stack([np.asarray(x) * fx + cx, np.asarray(y) * fy + cy, np.ones(len(view))], -1)
   return np.split(ideal, np.cumsum([len(points) for points in keypoints])[:-1])
@@ -261,7 +259,7 @@ def symmetric_epipolar_distance(fundamental: np.ndarray, first_points: np.ndarra
 
 
 def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, masks=None,
-                          settings: ConsistencySettings | None = None
+                          settings: ConsistencySettings = ConsistencySettings()
                           ) -> ConsistencyReport:
   """Verified correspondences between neighbouring views of one image set.
 
@@ -269,9 +267,8 @@ def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, mas
     images: [N, H, W, 3] float in [0, 1] or uint8.
     cameras: the N cameras (needed for neighbours "distance"/"angle" and for epipolar_inliers).
     masks: optional [N, H, W] selection masks restricting keypoints (see the module docstring).
-    settings: pairing, matching and verification parameters (None: the gin-bound defaults).
+    settings: pairing, matching and verification parameters.
   """
-  settings = settings or ConsistencySettings()
   images = np.asarray(images)
   if cameras is not None and cameras.num_cameras != len(images):
     raise InputError(f"{len(images)} images but {cameras.num_cameras} cameras", field="cameras")

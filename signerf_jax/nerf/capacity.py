@@ -21,7 +21,6 @@ import dataclasses
 import math
 from typing import Any, Mapping
 
-import gin
 import numpy as np
 
 from signerf_jax import camera as camera_lib
@@ -233,31 +232,19 @@ def _round_up(value: float, multiple: int) -> int:
   return int(math.ceil(value / multiple) * multiple)
 
 
-@gin.configurable(denylist=["scene"])
-def derive_capacity(scene: SceneInfo,
-                    oversampling: float = 1.0,
-                    base_resolution: int = 16,
-                    level_growth: float = 1.5,
-                    features_per_level: int = 2,
-                    max_log2_table_size: int = 19,
-                    table_rows_per_surface_cell: float = 4.0,
-                    steps_per_finest_cell: float = 1.0,
-                    rays_per_batch: int | None = None,
-                    samples_per_batch: int = 65536,
-                    sample_groups: int = 8,
-                    appearance_embedding: bool | None = None,
-                    overrides: Mapping[str, Any] | None = None) -> Capacity:
-  """The capacity a scene needs (gin knobs tune the rules; `overrides` pins any field).
+@dataclasses.dataclass(frozen=True)
+class CapacityRules:
+  """The rules `derive_capacity` sizes a model by (gin: `CapacityRules.<field>`).
 
-  Args:
-    scene: the scene's geometry and image size.
-    oversampling: finest grid cells per pixel footprint.
-    base_resolution: coarsest grid resolution.
-    level_growth: target resolution ratio between consecutive levels.
-    features_per_level: features per grid row.
-    max_log2_table_size: cap on rows per hashed level.
-    table_rows_per_surface_cell: rows per level = this * finest_resolution^2 (rounded to 2^k).
-    steps_per_finest_cell: marching step = finest cell size / this.
+  Attributes:
+    oversampling: finest grid cells per pixel footprint (cells / pixel).
+    base_resolution: the coarsest grid level's cells per side.
+    level_growth: target resolution ratio between consecutive grid levels (> 1).
+    features_per_level: features (floats) per grid row.
+    max_log2_table_size: cap on log2 of the rows of a hashed level.
+    table_rows_per_surface_cell: rows per level = this * finest_resolution^2 (rounded up to a
+      power of two): rows per finest cell of a surface spanning the scene.
+    steps_per_finest_cell: marching steps per finest cell length (occupancy sampler).
     rays_per_batch: rays per training step; None derives it: with the occupancy sampler, enough
       rays to fill the sample budget at 8 occupied samples per ray (typical once empty space is
       pruned; rays that overflow the budget only cost their grid lookups); with proposals,
@@ -266,51 +253,93 @@ def derive_capacity(scene: SceneInfo,
     sample_groups: independent sample budgets per batch (occupancy sampler); 8 lets 1, 2, 4
       or 8 devices share training evenly (`Capacity.sample_groups`).
     appearance_embedding: None = only for real captures (forward-facing / unbounded scenes).
-    overrides: Capacity fields to force, e.g. a fixed large configuration for comparison.
+    overrides: `Capacity` fields to force after deriving, e.g. a fixed large configuration for
+      comparison; None for none. (A mapping makes the rules unhashable: they are never a static
+      jit argument, only the `Capacity` they produce is.)
+  """
+
+  oversampling: float = 1.0
+  base_resolution: int = 16
+  level_growth: float = 1.5
+  features_per_level: int = 2
+  max_log2_table_size: int = 19
+  table_rows_per_surface_cell: float = 4.0
+  steps_per_finest_cell: float = 1.0
+  rays_per_batch: int | None = None
+  samples_per_batch: int = 65536
+  sample_groups: int = 8
+  appearance_embedding: bool | None = None
+  overrides: Mapping[str, Any] | None = None
+
+  def __post_init__(self):
+    if self.level_growth <= 1:
+      raise InputError(f"must exceed 1, got {self.level_growth}",
+                       field="CapacityRules.level_growth")
+    unknown = sorted(set(self.overrides or {}) - {field.name for field in
+                                                  dataclasses.fields(Capacity)})
+    if unknown:
+      raise InputError(f"not fields of Capacity: {unknown}", field="CapacityRules.overrides")
+
+
+def _grid_sizes(scene: SceneInfo, rules: CapacityRules) -> tuple[int, int, int]:
+  """(finest resolution, number of levels, log2 rows per level) of the radiance field's grid."""
+  inner_cells = rules.oversampling * scene.extent / scene.pixel_footprint
+  if scene.perspective is not None:  # One finest cell per pixel across the widest image range.
+    focal = scene.camera_distance / scene.pixel_footprint
+    inner_cells = rules.oversampling * focal * scene.perspective.image_plane_extent
+  # Contraction squeezes the inner box into half of the grid's side.
+  contract = scene.kind == "unbounded"
+  finest = max(rules.base_resolution, _round_up(2 * inner_cells if contract else inner_cells, 8))
+  num_levels = 1 + max(0, math.ceil(math.log(finest / rules.base_resolution)
+                                    / math.log(rules.level_growth)))
+  vertices_log2 = math.ceil(math.log2((finest + 1)**3))
+  surface_log2 = math.ceil(math.log2(rules.table_rows_per_surface_cell * finest**2))
+  return finest, num_levels, max(12, min(rules.max_log2_table_size, surface_log2, vertices_log2))
+
+
+def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) -> Capacity:
+  """The capacity a scene needs, sized by `rules` (whose `overrides` pin any field).
+
+  Args:
+    scene: the scene's geometry and image size.
+    rules: the knobs of the derivation (see `CapacityRules`).
+  Raises:
+    InputError: the scene's pixel footprint is not positive.
   """
   if scene.pixel_footprint <= 0 or not math.isfinite(scene.pixel_footprint):
     raise InputError(f"pixel footprint {scene.pixel_footprint} is not positive", None,
                      "pixel_footprint")
   bounded = scene.kind == "bounded"
   contract = scene.kind == "unbounded"
-  perspective_warp = scene.perspective is not None
-  inner_cells = oversampling * scene.extent / scene.pixel_footprint
-  if perspective_warp:  # One finest cell per pixel across the widest image-plane range.
-    focal = scene.camera_distance / scene.pixel_footprint
-    inner_cells = oversampling * focal * scene.perspective.image_plane_extent
-  # Contraction squeezes the inner box into half of the grid's side.
-  finest = max(base_resolution, _round_up(2 * inner_cells if contract else inner_cells, 8))
-  num_levels = 1 + max(0, math.ceil(math.log(finest / base_resolution) / math.log(level_growth)))
-  vertices_log2 = math.ceil(math.log2((finest + 1)**3))
-  surface_log2 = math.ceil(math.log2(table_rows_per_surface_cell * finest**2))
-  log2_table_size = max(12, min(max_log2_table_size, surface_log2, vertices_log2))
-
+  finest, num_levels, log2_table_size = _grid_sizes(scene, rules)
   cell = scene.extent / finest
   diagonal = math.sqrt(3.0) * scene.extent
-  march_steps = _round_up(diagonal / (cell / steps_per_finest_cell), 8)
+  march_steps = _round_up(diagonal / (cell / rules.steps_per_finest_cell), 8)
   # About what a coarse pixel footprint covers per cell, capped where updates get expensive.
   occupancy_resolution = int(np.clip(_round_up(finest / 2, 16), 32, 128))
   # Proposal sampling: more samples for larger images, within nerfacto's ranges.
   pixels_scale = math.sqrt(scene.width * scene.height) / 256.0
   samples_per_ray = int(np.clip(_round_up(24 * pixels_scale, 8), 16, 48))
+  rays_per_batch = rules.rays_per_batch
   if rays_per_batch is None:
     per_ray = 8 if bounded else samples_per_ray
-    rays_per_batch = max(256, samples_per_batch // per_ray // 256 * 256)
+    rays_per_batch = max(256, rules.samples_per_batch // per_ray // 256 * 256)
+  appearance_embedding = rules.appearance_embedding
   capacity = Capacity(
       contract=contract,
       background="constant" if bounded and scene.background_color is not None else "last_sample",
       sampler="occupancy" if bounded else "proposal",
       num_levels=num_levels,
-      base_resolution=base_resolution,
+      base_resolution=rules.base_resolution,
       finest_resolution=finest,
       log2_table_size=log2_table_size,
-      features_per_level=features_per_level,
+      features_per_level=rules.features_per_level,
       appearance_embedding=(not bounded) if appearance_embedding is None else appearance_embedding,
       rays_per_batch=rays_per_batch,
       march_steps=march_steps,
       occupancy_resolution=occupancy_resolution,
-      samples_per_batch=samples_per_batch,
-      sample_groups=sample_groups,
+      samples_per_batch=rules.samples_per_batch,
+      sample_groups=rules.sample_groups,
       proposal_samples=(2 * samples_per_ray, samples_per_ray),
       samples_per_ray=samples_per_ray,
       proposal_finest_resolution=min(finest, 256),
@@ -319,9 +348,9 @@ def derive_capacity(scene: SceneInfo,
       # it all in front of them, much of it nearer than the scene centre, whose gradients the
       # scaling would damp (fern: 22.2 dB with it, 23.0 without, at 300 s).
       near_gradient_scaling=contract,
-      perspective_warp=perspective_warp,
+      perspective_warp=scene.perspective is not None,
   )
-  return dataclasses.replace(capacity, **dict(overrides or {}))
+  return dataclasses.replace(capacity, **dict(rules.overrides or {}))
 
 
 def describe(capacity: Capacity) -> str:

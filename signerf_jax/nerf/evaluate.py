@@ -10,11 +10,12 @@ from typing import Any
 
 import numpy as np
 
+from signerf_jax import checkpoints
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import image as image_metrics
 from signerf_jax.metrics import lpips
-from signerf_jax.nerf import checkpoint, render, train
+from signerf_jax.nerf import render, train, training_run
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import camera_distances
 
@@ -44,10 +45,10 @@ class TrainedRun:
 
 def load_run(run_dir: str | os.PathLike) -> TrainedRun:
   """Loads the model and the latest checkpoint of a run directory."""
-  model, description = train.read_model_file(run_dir)
+  model, description = training_run.read_model_file(run_dir)
   config = train.TrainConfig()
   template = train.init_state(model, config)
-  state, metadata = checkpoint.restore(run_dir, template)
+  state, metadata = checkpoints.restore(run_dir, template)
   return TrainedRun(model, state.variables, int(metadata.get("step", int(state.step))),
                     float(metadata.get("seconds_trained", 0.0)), description)
 

@@ -280,6 +280,20 @@ def _appearance(model: NerfModel, rays: Rays, training: bool):
   return rays.camera_indices if training else jnp.full(rays.shape, -1, jnp.int32)
 
 
+def _field_at(model, variables, mask, unit_points, directions, appearance, indices):
+  """The field at flat sample `indices` of `mask` [r, N] (index mask.size: padding).
+
+  Returns:
+    density [K] (0 at padding) and rgb [K, 3].
+  """
+  safe = jnp.minimum(indices, mask.size - 1)
+  ray_index = safe // mask.shape[1]
+  density, rgb = model.field.apply({"params": variables["params"]["field"]},
+                                   unit_points.reshape(-1, 3)[safe], directions[ray_index],
+                                   appearance[ray_index], variables.get("level_weights"))
+  return jnp.where(indices < mask.size, density, 0.0), rgb
+
+
 def _occupancy_samples(model, variables, rays, key, training, ray_range, finish):
   capacity = model.capacity
   t_near, t_far = ray_range
@@ -292,56 +306,14 @@ def _occupancy_samples(model, variables, rays, key, training, ray_range, finish)
                                            OCCUPANCY_MIN_ALPHA)
   mask = occupancy.lookup(occupied_grid, unit_points) & (edges[:, 1:] > edges[:, :-1])
   num_rays, num_steps = mask.shape
-  appearance = _appearance(model, rays, training)
-
-  def evaluate(mask, unit_points, directions, appearance, indices):
-    """The field at flat sample `indices` of `mask` [r, N] (index mask.size: padding)."""
-    safe = jnp.minimum(indices, mask.size - 1)
-    ray_index = safe // mask.shape[1]
-    density, rgb = model.field.apply({"params": variables["params"]["field"]},
-                                     unit_points.reshape(-1, 3)[safe], directions[ray_index],
-                                     appearance[ray_index], variables.get("level_weights"))
-    return jnp.where(indices < mask.size, density, 0.0), rgb
-
-  def scatter(target, indices, values):
-    return target.at[indices].set(values, mode="drop")
-
-  budget = capacity.samples_per_batch
+  inputs = (functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
+            _appearance(model, rays, training), capacity.samples_per_batch)
   if training:
-    groups = capacity.sample_groups
-    if num_rays % groups or budget % groups:
-      raise InputError(f"{groups} groups do not split {num_rays} rays and {budget} samples "
-                       "evenly", field="Capacity.sample_groups")
-
-    def render_group(mask, unit_points, directions, appearance):
-      indices, valid, complete = occupancy.compact(mask, budget // groups)
-      density, rgb = evaluate(mask, unit_points, directions, appearance, indices)
-      return (scatter(jnp.zeros(mask.size, jnp.float32), indices, density),
-              scatter(jnp.zeros((mask.size, 3), jnp.float32), indices, rgb), complete,
-              jnp.sum(valid))
-
-    # Each group of consecutive rays fills its own share of the sample budget: groups work
-    # independently, so with the rays split over devices each device evaluates only its own.
-    grouped = lambda array: array.reshape((groups, -1) + array.shape[1:])
-    densities, rgbs, ray_complete, samples = jax.vmap(render_group)(
-        grouped(mask), grouped(unit_points), grouped(rays.directions), grouped(appearance))
-    ray_complete, samples = ray_complete.reshape(-1), jnp.sum(samples)
+    densities, rgbs, ray_complete, samples = occupancy.evaluate_in_groups(
+        *inputs, capacity.sample_groups)
   else:
-    # Evaluate every occupied sample, one fixed-size piece at a time (forward only).
-    padded = int(np.ceil(mask.size / budget)) * budget
-    all_indices, _, _ = occupancy.compact(mask, padded)
-    count = jnp.sum(mask)
-
-    def body(state):
-      piece, densities, rgbs = state
-      indices = jax.lax.dynamic_slice(all_indices, (piece * budget,), (budget,))
-      density, rgb = evaluate(mask, unit_points, rays.directions, appearance, indices)
-      return piece + 1, scatter(densities, indices, density), scatter(rgbs, indices, rgb)
-
-    _, densities, rgbs = jax.lax.while_loop(
-        lambda state: state[0] * budget < count, body,
-        (jnp.int32(0), jnp.zeros(mask.size, jnp.float32), jnp.zeros((mask.size, 3), jnp.float32)))
-    ray_complete, samples = jnp.ones(rays.shape, bool), count
+    densities, rgbs, samples = occupancy.evaluate_every_occupied(*inputs)
+    ray_complete = jnp.ones(rays.shape, bool)
   if finish:
     edges = _finish_edges(model, edges)
   along_rays = (densities.reshape(num_rays, num_steps), rgbs.reshape(num_rays, num_steps, 3),

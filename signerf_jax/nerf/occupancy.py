@@ -3,7 +3,9 @@
 The grid stores, per cell of the scene box, a running maximum of the field's density (decayed
 at each update). Ray marching proposes a fixed number of steps per ray; steps in cells whose
 density is too low to matter are dropped, and the surviving samples are compacted into a
-fixed-size buffer with `jnp.nonzero(size=...)` so the network only sees useful samples.
+fixed-size buffer with `jnp.nonzero(size=...)` so the network only sees useful samples
+(`evaluate_in_groups` while training, within a sample budget; `evaluate_every_occupied` when
+rendering).
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from signerf_jax.errors import InputError
 
 # Cells not yet evaluated hold this value and count as occupied (densities are >= 0).
 UNVISITED = -1.0
@@ -99,3 +103,59 @@ def compact(mask, size: int):
   valid = indices < flat.shape[0]
   ends = jnp.cumsum(jnp.sum(mask, axis=-1))
   return indices.astype(jnp.int32), valid, ends <= size
+
+
+def _scatter(target, indices, values):
+  return target.at[indices].set(values, mode="drop")
+
+
+def evaluate_in_groups(field_at, mask, unit_points, directions, appearance, budget: int,
+                       groups: int):
+  """Training: `field_at(mask, unit_points, directions, appearance, indices)` at the occupied
+  samples (`mask` [R, N]) of each group of consecutive rays, up to the group's share of the
+  sample budget. Groups work independently, so with the rays split over devices each device
+  evaluates only its own.
+
+  Returns:
+    density [R * N], rgb [R * N, 3], ray_complete [R] (no sample of the ray was dropped) and the
+    number of samples evaluated.
+  """
+  num_rays = mask.shape[0]
+  if num_rays % groups or budget % groups:
+    raise InputError(f"{groups} groups do not split {num_rays} rays and {budget} samples "
+                     "evenly", field="Capacity.sample_groups")
+
+  def render_group(mask, unit_points, directions, appearance):
+    indices, valid, complete = compact(mask, budget // groups)
+    density, rgb = field_at(mask, unit_points, directions, appearance, indices)
+    return (_scatter(jnp.zeros(mask.size, jnp.float32), indices, density),
+            _scatter(jnp.zeros((mask.size, 3), jnp.float32), indices, rgb), complete,
+            jnp.sum(valid))
+
+  grouped = lambda array: array.reshape((groups, -1) + array.shape[1:])
+  densities, rgbs, ray_complete, samples = jax.vmap(render_group)(
+      grouped(mask), grouped(unit_points), grouped(directions), grouped(appearance))
+  return densities, rgbs, ray_complete.reshape(-1), jnp.sum(samples)
+
+
+def evaluate_every_occupied(field_at, mask, unit_points, directions, appearance, budget: int):
+  """Rendering: `field_at` (as `evaluate_in_groups`) at every occupied sample, one budget-sized
+  piece at a time (forward only).
+
+  Returns:
+    density [R * N], rgb [R * N, 3] and the number of samples evaluated.
+  """
+  padded = int(np.ceil(mask.size / budget)) * budget
+  all_indices, _, _ = compact(mask, padded)
+  count = jnp.sum(mask)
+
+  def body(state):
+    piece, densities, rgbs = state
+    indices = jax.lax.dynamic_slice(all_indices, (piece * budget,), (budget,))
+    density, rgb = field_at(mask, unit_points, directions, appearance, indices)
+    return piece + 1, _scatter(densities, indices, density), _scatter(rgbs, indices, rgb)
+
+  _, densities, rgbs = jax.lax.while_loop(
+      lambda state: state[0] * budget < count, body,
+      (jnp.int32(0), jnp.zeros(mask.size, jnp.float32), jnp.zeros((mask.size, 3), jnp.float32)))
+  return densities, rgbs, count

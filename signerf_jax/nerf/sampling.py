@@ -1,5 +1,5 @@
-"""Where along each ray to evaluate the field: box intersection, stratified and PDF sampling,
-scene contraction.
+"""Where along each ray to evaluate the field: the slab test (box intersection), stratified and
+PDF sampling, scene contraction.
 
 Every function keeps static shapes: a ray gets a fixed number of interval *edges* t [..., N + 1]
 (sorted, metric distance along the unit direction); samples live at interval midpoints.
@@ -16,29 +16,55 @@ from signerf_jax import math as safe_math
 MAX_DISTANCE = 1e10
 
 
-def intersect_aabb(origins, directions, bounds):
-  """Entry and exit distances of rays through an axis-aligned box (slab method).
+def ray_box_interval(origins, directions, minimum, maximum, closed: bool = True):
+  """Where rays are inside an axis-aligned box (the slab test).
 
-  Axis-parallel rays are handled by clamping 1 / direction to a huge finite value (instead of
-  inf, which turns `0 * inf` into nan for origins on a slab plane).
+  Exact for direction components that are exactly zero (the ray is parallel to a slab: inside
+  it for every t, or never; no 0 * inf) and for origins inside the box (the interval starts at
+  0); gradients are finite.
+
+  Args:
+    origins, directions: [..., 3]; directions need not be unit (t is in their units).
+    minimum, maximum: [3] box corners.
+    closed: the box includes its faces, so a ray touching or grazing one meets it (selections);
+      False: only rays through the interior do (sampling a volume).
+  Returns:
+    entry, exit: [...] ray parameters with 0 <= entry; meaningful where `hits`.
+    hits: [...] bool, the ray (t >= 0) meets the box.
+  """
+  parallel = directions == 0
+  safe_directions = jnp.where(parallel, 1.0, directions)
+  to_minimum = (minimum - origins) / safe_directions
+  to_maximum = (maximum - origins) / safe_directions
+  if closed:
+    inside_slab = (origins >= minimum) & (origins <= maximum)
+  else:
+    inside_slab = (origins > minimum) & (origins < maximum)
+  slab_entry = jnp.where(parallel, jnp.where(inside_slab, -jnp.inf, jnp.inf),
+                         jnp.minimum(to_minimum, to_maximum))
+  slab_exit = jnp.where(parallel, jnp.where(inside_slab, jnp.inf, -jnp.inf),
+                        jnp.maximum(to_minimum, to_maximum))
+  entry = jnp.maximum(jnp.max(slab_entry, axis=-1), 0.0)
+  exit_ = jnp.min(slab_exit, axis=-1)
+  return entry, exit_, (entry <= exit_) if closed else (entry < exit_)
+
+
+def intersect_aabb(origins, directions, bounds):
+  """Entry and exit distances of rays through the interior of a box, finite for sampling.
 
   Args:
     origins, directions: [..., 3].
     bounds: [2, 3] (min corner, max corner).
   Returns:
-    t_near, t_far: [...] with 0 <= t_near <= t_far; rays that miss have t_near == t_far.
+    t_near, t_far: [...] with 0 <= t_near <= t_far <= MAX_DISTANCE; rays that miss have
+      t_near == t_far.
     hit: [...] bool, True where the ray passes through the box's interior ahead of the origin.
   """
   bounds = jnp.asarray(bounds, jnp.float32)
-  inverse = safe_math.safe_div(1.0, directions)
-  t_low = (bounds[0] - origins) * inverse
-  t_high = (bounds[1] - origins) * inverse
-  t_enter = jnp.max(jnp.minimum(t_low, t_high), axis=-1)
-  t_exit = jnp.min(jnp.maximum(t_low, t_high), axis=-1)
-  t_near = jnp.clip(t_enter, 0.0, MAX_DISTANCE)
-  t_far = jnp.clip(t_exit, 0.0, MAX_DISTANCE)
-  hit = t_far > t_near
-  return t_near, jnp.maximum(t_far, t_near), hit
+  entry, exit_, _ = ray_box_interval(origins, directions, bounds[0], bounds[1], closed=False)
+  t_near = jnp.clip(entry, 0.0, MAX_DISTANCE)
+  t_far = jnp.clip(exit_, 0.0, MAX_DISTANCE)
+  return t_near, jnp.maximum(t_far, t_near), t_far > t_near
 
 
 def stratified_edges(key, t_near, t_far, num_intervals: int, randomized: bool):

@@ -1,11 +1,9 @@
-"""Training: a jit-compiled step over a donated `TrainState`, checkpointed and resumable.
+"""One NeRF training step: the settings (`TrainConfig`), the state it carries (`TrainState`),
+the optimiser and its schedule, and the jit-compiled step over a donated state (the loss, the
+gradients, the update, the occupancy grid's refresh). `training_run` runs these steps.
 
-A run directory holds:
-  config.gin          every gin binding in force
-  model.json          scene geometry, capacity and where the data came from
-  checkpoint.msgpack  the latest TrainState plus step / seconds trained
-A resumed run continues exactly as an uninterrupted one: each step's randomness is
-`fold_in(state.key, state.step)`, so nothing depends on how the run was split.
+Each step's randomness is `fold_in(state.key, state.step)`, so nothing depends on how a run was
+split into bursts or resumed.
 
 Training is data-parallel over a device mesh (default: every device, `parallel.device_mesh`):
 each step's ray batch is split over the devices, the state and the images are replicated, and
@@ -18,35 +16,26 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
-import time
-from pathlib import Path
 from typing import Any, Callable
 
-import gin
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import tqdm
 from flax import struct
 from jax.sharding import Mesh
 
-from signerf_jax import camera, configs, files, parallel
+from signerf_jax import camera, parallel
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import checkpoint, losses
+from signerf_jax.nerf import losses
 from signerf_jax.nerf import model as nerf_model
-from signerf_jax.nerf.capacity import Capacity, SceneInfo, derive_capacity
 from signerf_jax.nerf.encoding import level_weights_at
 
-MODEL_FILE = "model.json"
 
-
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-  """Optimisation settings.
+  """Optimisation settings (gin: `TrainConfig.<field>`, scoped per run in an edit).
 
   Attributes:
     steps: training steps (the learning-rate schedule spans them).
@@ -292,175 +281,3 @@ def make_train_step(model: nerf_model.NerfModel, config: TrainConfig, mesh: Mesh
     return step_fn(state, data, progress)
 
   return step_with_occupancy
-
-
-@dataclasses.dataclass
-class Trainer:
-  """A training run in memory: the model, its jitted step and the state, advanced in bursts.
-
-  `train` below is the usual entry point; benchmarks use a Trainer directly to evaluate between
-  bursts without recompiling. `mesh` is the devices the steps run on (None: all of them).
-  """
-
-  model: nerf_model.NerfModel
-  config: TrainConfig
-  data: TrainingData
-  state: TrainState
-  seconds_trained: float = 0.0
-  samples_trained: float = 0.0
-  last_statistics: dict[str, float] = dataclasses.field(default_factory=dict)
-  mesh: Mesh | None = None
-
-  def __post_init__(self):
-    self.mesh = parallel.device_mesh() if self.mesh is None else self.mesh
-    self._step_fn = make_train_step(self.model, self.config, self.mesh)
-    # Placed once: the step would otherwise copy the images to every device at each call.
-    self.data, self.state = parallel.replicate((self.data, self.state), self.mesh)
-
-  @property
-  def step(self) -> int:
-    return int(self.state.step)
-
-  @property
-  def progress(self) -> float:
-    """How far through its schedule the run is, in [0, 1]: the larger of the steps done over
-    `config.steps` and the seconds trained over `config.max_seconds` (when set)."""
-    fractions = [self.step / max(self.config.steps, 1)]
-    if self.config.max_seconds:
-      fractions.append(self.seconds_trained / self.config.max_seconds)
-    return min(1.0, max(fractions))
-
-  def run(self, *, until_step: int | None = None, until_seconds: float | None = None,
-          run_dir: str | os.PathLike | None = None, progress: bool = True) -> dict[str, float]:
-    """Trains until `until_step` (default: config.steps) or `until_seconds` of total training
-    time, checkpointing into `run_dir` (if given) periodically and at the end.
-
-    Returns:
-      the last step's statistics (floats).
-    """
-    until_step = self.config.steps if until_step is None else until_step
-    limit = until_seconds if until_seconds is not None else self.config.max_seconds
-    statistics: dict[str, float] = {}
-    last_checkpoint_step, last_checkpoint_time = self.step, time.perf_counter()
-    bar = tqdm.tqdm(total=until_step, initial=self.step, disable=not progress, unit="step",
-                    dynamic_ncols=True)
-    smoothed_loss = None
-    while self.step < until_step and (limit is None or self.seconds_trained < limit):
-      started = time.perf_counter()
-      self.state, step_statistics = self._step_fn(self.state, self.data,
-                                                  jnp.float32(self.progress))
-      loss = float(step_statistics["loss"])  # Blocks, so the time below is the step's.
-      self.seconds_trained += time.perf_counter() - started
-      smoothed_loss = loss if smoothed_loss is None else 0.9 * smoothed_loss + 0.1 * loss
-      statistics = {name: float(value) for name, value in step_statistics.items()}
-      self.samples_trained += statistics["samples"]
-      bar.update(1)
-      if self.step % 10 == 0 or self.step == until_step:
-        bar.set_postfix(loss=f"{smoothed_loss:.4f}", psnr=f"{statistics['psnr']:.2f}",
-                        seconds=f"{self.seconds_trained:.0f}")
-      if run_dir is not None and (
-          self.step - last_checkpoint_step >= self.config.checkpoint_every_steps or
-          time.perf_counter() - last_checkpoint_time >= self.config.checkpoint_every_seconds):
-        self.save(run_dir)
-        last_checkpoint_step, last_checkpoint_time = self.step, time.perf_counter()
-    bar.close()
-    if run_dir is not None:
-      self.save(run_dir)
-    self.last_statistics = statistics or self.last_statistics
-    return self.last_statistics
-
-  def save(self, run_dir: str | os.PathLike) -> None:
-    checkpoint.save(run_dir, self.state, {"step": self.step,
-                                          "seconds_trained": self.seconds_trained,
-                                          "samples_trained": self.samples_trained})
-
-  def restore(self, run_dir: str | os.PathLike) -> None:
-    """Continues from the checkpoint in `run_dir` (state, seconds and samples trained)."""
-    state, metadata = checkpoint.restore(run_dir, self.state)
-    # Placed like the fresh state: host arrays would make the first step compile again.
-    self.state = parallel.replicate(state, self.mesh)
-    self.seconds_trained = float(metadata.get("seconds_trained", 0.0))
-    self.samples_trained = float(metadata.get("samples_trained", 0.0))
-
-
-def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
-                     dataset: Dataset, data_options: dict[str, Any] | None = None) -> None:
-  files.write_json(Path(run_dir) / MODEL_FILE, {
-      "scene": dataclasses.asdict(model.scene),
-      "capacity": dataclasses.asdict(model.capacity),
-      "edit_region": model.edit_region,
-      "dataset": dataset.summary(),
-      "data_options": dict(data_options or {}),
-  })
-
-
-def read_model_file(run_dir: str | os.PathLike) -> tuple[nerf_model.NerfModel, dict[str, Any]]:
-  """The model of a run and the rest of model.json (dataset summary, data options)."""
-  path = Path(run_dir) / MODEL_FILE
-  description = files.read_json(path)
-  try:
-    model = nerf_model.NerfModel(SceneInfo.from_json(description["scene"]),
-                                 Capacity.from_json(description["capacity"]),
-                                 description.get("edit_region"))
-  except (KeyError, TypeError, ValueError, InputError) as error:
-    raise InputError(f"malformed model description ({error})", path) from None
-  return model, description
-
-
-def build_model(dataset: Dataset, capacity: Capacity | None = None) -> nerf_model.NerfModel:
-  """The model for a dataset, with capacity derived from it unless given."""
-  scene = SceneInfo.from_dataset(dataset)
-  return nerf_model.NerfModel(scene, capacity or derive_capacity(scene))
-
-
-def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
-                 config: TrainConfig | None = None, init_variables=None,
-                 pixel_weights=None, mesh: Mesh | None = None) -> Trainer:
-  """A Trainer at step 0 (fresh, or fine-tuning from `init_variables`), data-parallel over
-  `mesh` (default: all devices)."""
-  config = config or TrainConfig()
-  model = model or build_model(dataset)
-  return Trainer(model, config, TrainingData.from_dataset(dataset, pixel_weights),
-                 init_state(model, config, init_variables), mesh=mesh)
-
-
-def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
-          steps: int | None = None, max_seconds: float | None = None, pixel_weights=None,
-          model: nerf_model.NerfModel | None = None, config: TrainConfig | None = None,
-          data_options: dict[str, Any] | None = None, progress: bool = True) -> Trainer:
-  """Trains (or resumes, if `run_dir` has a checkpoint) a NeRF on `dataset`.
-
-  Args:
-    dataset: training views.
-    run_dir: where config.gin, model.json and the checkpoint go.
-    init_variables: start from these variables (fine-tuning; e.g. `load_run(...).variables`);
-      the model must then be the one they belong to (pass `model`).
-    steps, max_seconds: override TrainConfig.steps / max_seconds.
-    pixel_weights: optional [N, H, W] per-pixel loss weights (multiplied with dataset.masks).
-    model: the architecture (default: derived from the dataset).
-    config: training settings (default: gin-configured TrainConfig()).
-    data_options: how the data was loaded (root, downscale, ...), recorded for `signerf eval`.
-    progress: show a progress bar.
-  Returns:
-    the Trainer after training (model, state, seconds_trained).
-  """
-  config = config or TrainConfig()
-  overrides = {name: value for name, value in (("steps", steps), ("max_seconds", max_seconds))
-               if value is not None}
-  config = dataclasses.replace(config, **overrides)
-  run_dir = Path(run_dir)
-  if checkpoint.has_checkpoint(run_dir):
-    saved_model, _ = read_model_file(run_dir)
-    if model is not None and model != saved_model:
-      raise InputError("the run directory holds a different model", run_dir / MODEL_FILE)
-    model = saved_model
-  trainer = make_trainer(dataset, model=model, config=config, init_variables=init_variables,
-                         pixel_weights=pixel_weights)
-  run_dir.mkdir(parents=True, exist_ok=True)
-  configs.save_gin_config(run_dir)
-  if checkpoint.has_checkpoint(run_dir):
-    trainer.restore(run_dir)
-  else:
-    write_model_file(run_dir, trainer.model, dataset, data_options)
-  trainer.run(run_dir=run_dir, progress=progress)
-  return trainer

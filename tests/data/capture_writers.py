@@ -11,9 +11,9 @@ import numpy as np
 from scipy.spatial import transform
 
 from signerf_jax import files
-from signerf_jax.data import colmap
+from signerf_jax.data import colmap_model
 
-COLMAP_MODEL_IDS = {name: model_id for model_id, (name, _) in colmap.MODELS_BY_ID.items()}
+COLMAP_MODEL_IDS = {name: model_id for model_id, (name, _) in colmap_model.MODELS_BY_ID.items()}
 # OpenGL camera axes (right, up, back) -> OpenCV's (right, down, forward), and back.
 FLIP_YZ = np.diag([1.0, -1.0, -1.0])
 
@@ -25,11 +25,12 @@ def opencv_world_to_camera(camera_to_world) -> tuple[np.ndarray, np.ndarray]:
   return rotation, -rotation @ camera_to_world[:3, 3]
 
 
-def colmap_image(image_id: int, camera_id: int, name: str, camera_to_world) -> colmap.ColmapImage:
+def colmap_image(image_id: int, camera_id: int, name: str,
+                 camera_to_world) -> colmap_model.ColmapImage:
   """A registered image at an OpenGL camera-to-world pose."""
   rotation, translation = opencv_world_to_camera(camera_to_world)
   x, y, z, w = transform.Rotation.from_matrix(rotation).as_quat()
-  return colmap.ColmapImage(image_id, (w, x, y, z), tuple(translation), camera_id, name)
+  return colmap_model.ColmapImage(image_id, (w, x, y, z), tuple(translation), camera_id, name)
 
 
 def write_colmap_model(folder, cameras, images, points, binary: bool) -> None:

@@ -6,7 +6,7 @@ import pytest
 from capture_writers import colmap_image, write_colmap_model, write_images
 
 from signerf_jax import camera
-from signerf_jax.data import colmap, detect_format, load_dataset, poses
+from signerf_jax.data import colmap, colmap_model, detect_format, load_dataset, poses
 from signerf_jax.errors import InputError
 
 WIDTH, HEIGHT = 8, 6
@@ -49,7 +49,7 @@ def make_rig(models):
   """One camera and one image per model, camera ids 11.., image ids counting down while the
   names count up (so id order is not name order), written in a shuffled order."""
   poses_ = ring_poses(len(models))
-  cameras = [colmap.ColmapCamera(11 + index, model, WIDTH, HEIGHT, params)
+  cameras = [colmap_model.ColmapCamera(11 + index, model, WIDTH, HEIGHT, params)
              for index, (model, (params, _, _)) in enumerate(models.items())]
   images = [colmap_image(len(models) - index, 11 + index, f"view_{index:02d}.png", pose)
             for index, pose in enumerate(poses_)]
@@ -105,7 +105,7 @@ def test_the_model_is_found_in_sparse_or_the_root_and_sparse_0_wins(tmp_path, fo
 def test_models_without_an_opencv_equivalent_name_the_camera_and_the_model(tmp_path, model,
                                                                            binary):
   cameras, images, _ = make_rig(PERSPECTIVE_MODELS)
-  cameras[2] = colmap.ColmapCamera(13, model, WIDTH, HEIGHT, (4.0,) * UNSUPPORTED[model])
+  cameras[2] = colmap_model.ColmapCamera(13, model, WIDTH, HEIGHT, (4.0,) * UNSUPPORTED[model])
   write_colmap_model(tmp_path / "sparse" / "0", cameras, images, POINTS, binary)
   with pytest.raises(InputError, match=f"{model} model, which has no OpenCV equivalent") as error:
     load_dataset(tmp_path, split="all")
@@ -155,13 +155,13 @@ def test_a_corrupt_count_or_model_id_or_quaternion_names_the_record(tmp_path):
 
 def test_mixed_image_sizes_or_lens_kinds_name_the_camera(tmp_path):
   cameras, images, _ = make_rig(PERSPECTIVE_MODELS)
-  cameras[3] = colmap.ColmapCamera(14, "PINHOLE", WIDTH + 2, HEIGHT, (7.0, 7.0, 5.0, 3.0))
+  cameras[3] = colmap_model.ColmapCamera(14, "PINHOLE", WIDTH + 2, HEIGHT, (7.0, 7.0, 5.0, 3.0))
   write_colmap_model(tmp_path / "sparse" / "0", cameras, images, POINTS, binary=True)
   with pytest.raises(InputError, match="mixed sizes") as error:
     load_dataset(tmp_path, split="all")
   assert error.value.field == "camera 14"
 
-  cameras[3] = colmap.ColmapCamera(14, "OPENCV_FISHEYE", WIDTH, HEIGHT, (4.0,) * 8)
+  cameras[3] = colmap_model.ColmapCamera(14, "OPENCV_FISHEYE", WIDTH, HEIGHT, (4.0,) * 8)
   write_colmap_model(tmp_path / "sparse" / "0", cameras, images, POINTS, binary=True)
   with pytest.raises(InputError, match="is a fisheye lens but camera 11 is a perspective") as error:
     load_dataset(tmp_path, split="all")
@@ -216,9 +216,9 @@ def test_a_model_without_registered_images_or_with_repeated_names(tmp_path):
 @pytest.mark.shared_data
 def test_fern_cameras_and_points_read_like_its_llff_poses(shared_data):
   model = shared_data / "llff" / "fern" / "sparse" / "0"
-  (fern_camera,) = colmap.read_cameras(model / "cameras.bin").values()
+  (fern_camera,) = colmap_model.read_cameras(model / "cameras.bin").values()
   assert (fern_camera.model, fern_camera.width, fern_camera.height) == ("SIMPLE_RADIAL", 4032,
                                                                           3024)
   assert fern_camera.params[0] == pytest.approx(3260.5, abs=0.1)  # LLFF's hwf focal
-  points = colmap.read_points(model / "points3D.bin")
+  points = colmap_model.read_points(model / "points3D.bin")
   assert points.shape[1] == 3 and len(points) > 1000 and np.all(np.isfinite(points))

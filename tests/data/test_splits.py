@@ -8,7 +8,7 @@ import pytest
 from signerf_jax import files
 from signerf_jax.data import load_dataset, splits, write_nerfstudio
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import train
+from signerf_jax.nerf import train, training_run
 
 NAMES = tuple(f"images/frame_{index:05d}.png" for index in range(10))
 
@@ -122,7 +122,7 @@ def test_held_out_images_are_never_read_for_training(tmp_path, dataset_factory):
     (tmp_path / "images" / f"frame_{index:05d}.png").unlink()
   training = load_dataset(tmp_path, split="train")
   assert not {"./images/frame_00001", "./images/frame_00004"} & set(training.image_names)
-  trainer = train.make_trainer(training, config=dataclasses.replace(train.TrainConfig(),
+  trainer = training_run.make_trainer(training, config=dataclasses.replace(train.TrainConfig(),
                                                                      steps=1))
   assert trainer.data.images.shape[0] == 4
   with pytest.raises(InputError, match="not found") as error:

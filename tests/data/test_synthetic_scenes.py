@@ -6,10 +6,10 @@ import pytest
 import trimesh
 
 from signerf_jax import cli, configs, files
-from signerf_jax.data import load_dataset, poses, synthetic
+from signerf_jax.data import load_dataset, poses, synthetic, synthetic_render
 from signerf_jax.errors import InputError
 
-TINY_RIG = synthetic.CameraRig(image_size=32, num_views=8)
+TINY_RIG = synthetic_render.CameraRig(image_size=32, num_views=8)
 
 
 @pytest.fixture
@@ -42,9 +42,9 @@ def pixel_rays_float64(cameras, index):
 def test_generation_is_deterministic_in_the_seed(tmp_path, mesh_directory):
   settings = synthetic.SceneSettings(mesh_directory=str(mesh_directory))
   for name, seed in (("first", 4), ("again", 4), ("other", 5)):
-    synthetic.generate(tmp_path / name, seed, settings, TINY_RIG)
+    synthetic_render.generate(tmp_path / name, seed, settings, TINY_RIG)
   written = sorted(p.relative_to(tmp_path / "first") for p in (tmp_path / "first").rglob("*.*"))
-  assert len(written) == 3 + 3 * 8  # transforms, scene, config + image, depth, ids per view
+  assert len(written) == 2 + 3 * 8  # transforms, scene + image, depth, ids per view
   for relative in written:
     assert (tmp_path / "first" / relative).read_bytes() == (
         tmp_path / "again" / relative).read_bytes(), relative
@@ -61,8 +61,8 @@ def test_depth_matches_analytic_ray_plane_and_ray_sphere_depth():
   sphere = dataclasses.replace(scene.objects[0], shape="sphere",
                                object_to_world=synthetic.affine(radius * np.eye(3), center))
   scene = dataclasses.replace(scene, objects=(sphere,))
-  cameras = synthetic.make_cameras(TINY_RIG, scene.scene_bounds)
-  _, depth, object_ids = synthetic.render(scene, cameras)
+  cameras = synthetic_render.make_cameras(TINY_RIG, scene.scene_bounds)
+  _, depth, object_ids = synthetic_render.render(scene, cameras)
   half_size = scene.ground.object_to_world[0, 0]
   counts = np.zeros(3, int)
   for index in range(cameras.num_cameras):
@@ -90,15 +90,15 @@ def test_depth_matches_analytic_ray_plane_and_ray_sphere_depth():
 
 def test_object_masks_agree_with_depth(mesh_directory):
   scene = synthetic.make_scene(2, synthetic.SceneSettings(mesh_directory=str(mesh_directory)))
-  cameras = synthetic.make_cameras(TINY_RIG, scene.scene_bounds)
-  rgb, depth, object_ids = synthetic.render(scene, cameras)
+  cameras = synthetic_render.make_cameras(TINY_RIG, scene.scene_bounds)
+  rgb, depth, object_ids = synthetic_render.render(scene, cameras)
   missed = depth == 0
   assert np.all(object_ids[missed] == 0) and np.all(rgb[missed] == 1.0)
   assert set(np.unique(object_ids)) == {0, 1, 2, 3, 4}
   for removed in scene.objects:
     reduced = dataclasses.replace(scene, objects=tuple(
         shape for shape in scene.objects if shape is not removed))
-    _, depth_without, _ = synthetic.render(reduced, cameras)
+    _, depth_without, _ = synthetic_render.render(reduced, cameras)
     # Removing an object changes depth exactly on its mask, and only to something farther.
     changed = depth_without != depth
     np.testing.assert_array_equal(changed, object_ids == removed.object_id)
@@ -110,8 +110,8 @@ def test_mask_edges_are_depth_discontinuities_seen_from_above():
   scene = synthetic.make_scene(1, synthetic.SceneSettings(num_meshes=0, num_primitives=4))
   rig = dataclasses.replace(TINY_RIG, image_size=48, num_views=3,
                             elevation_range_degrees=(80, 89))
-  cameras = synthetic.make_cameras(rig, scene.scene_bounds)
-  _, depth, object_ids = synthetic.render(scene, cameras)
+  cameras = synthetic_render.make_cameras(rig, scene.scene_bounds)
+  _, depth, object_ids = synthetic_render.render(scene, cameras)
   heights = []
   for index in range(cameras.num_cameras):
     origins, directions = pixel_rays_float64(cameras, index)
@@ -137,7 +137,7 @@ def test_mask_edges_are_depth_discontinuities_seen_from_above():
 
 def test_written_scene_loads_with_its_ground_truth(tmp_path, mesh_directory):
   settings = synthetic.SceneSettings(mesh_directory=str(mesh_directory))
-  dataset, scene = synthetic.generate(tmp_path, 0, settings, TINY_RIG)
+  dataset, scene = synthetic_render.generate(tmp_path, 0, settings, TINY_RIG)
   loaded = load_dataset(tmp_path, split="all")
   assert loaded.scene_kind == "bounded" and loaded.num_images == 8
   np.testing.assert_array_equal(loaded.world_from_source, np.eye(4))
@@ -166,11 +166,11 @@ def test_written_scene_loads_with_its_ground_truth(tmp_path, mesh_directory):
   np.testing.assert_allclose([placed.min(0), placed.max(0)], mesh_entry["bounds"], atol=1e-9)
 
 
-@pytest.mark.parametrize("layout", synthetic.CAMERA_LAYOUTS)
+@pytest.mark.parametrize("layout", synthetic_render.CAMERA_LAYOUTS)
 def test_camera_layouts_look_at_the_scene_centre(layout):
   bounds = np.array([[-1.0, -1.0, -0.2], [1.0, 1.0, 0.6]])
-  rig = synthetic.CameraRig(layout=layout, num_views=20, distance=3.0)
-  cameras = synthetic.make_cameras(rig, bounds)
+  rig = synthetic_render.CameraRig(layout=layout, num_views=20, distance=3.0)
+  cameras = synthetic_render.make_cameras(rig, bounds)
   target = bounds.mean(0)
   offsets = np.asarray(cameras.positions, np.float64) - target
   np.testing.assert_allclose(np.linalg.norm(offsets, axis=-1), 3.0, rtol=1e-5)
@@ -192,12 +192,13 @@ def test_camera_layouts_look_at_the_scene_centre(layout):
     (synthetic.SceneSettings(ground_half_size=1.0), TINY_RIG, "synthetic_scene.ground_half_size"),
     (synthetic.SceneSettings(object_radius_range=(0.3, 0.2)), TINY_RIG,
      "synthetic_scene.object_radius_range"),
-    (synthetic.SceneSettings(), synthetic.CameraRig(layout="spiral"), "synthetic_cameras.layout"),
-    (synthetic.SceneSettings(), synthetic.CameraRig(num_views=0), "synthetic_cameras"),
+    (synthetic.SceneSettings(), synthetic_render.CameraRig(layout="spiral"),
+     "synthetic_cameras.layout"),
+    (synthetic.SceneSettings(), synthetic_render.CameraRig(num_views=0), "synthetic_cameras"),
 ])
 def test_bad_generator_settings(tmp_path, settings, rig, field):
   with pytest.raises(InputError) as error:
-    synthetic.generate(tmp_path, 0, dataclasses.replace(settings, num_meshes=0), rig)
+    synthetic_render.generate(tmp_path, 0, dataclasses.replace(settings, num_meshes=0), rig)
   assert error.value.field.startswith(field)
 
 
@@ -216,5 +217,6 @@ def test_synthesize_command_writes_the_scene_and_its_config(tmp_path, capsys):
 
 def test_gin_files_bind_the_generator():
   configs.parse_gin(["synthetic_large"])
-  assert synthetic.CameraRig().image_size == 256 and synthetic.CameraRig().num_views == 100
-  assert synthetic.SceneSettings().num_meshes == 3
+  rig = configs.build(synthetic_render.CameraRig)
+  assert rig.image_size == 256 and rig.num_views == 100
+  assert configs.build(synthetic.SceneSettings).num_meshes == 3

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import pytest
 
-from signerf_jax.default_model import samples
+from signerf_jax.default_model import scenes
 
 
 @pytest.fixture(scope="session")
-def tiny_sampling(tmp_path_factory) -> samples.SceneSampling:
+def tiny_sampling(tmp_path_factory) -> scenes.SceneSampling:
   """32-pixel views, a 12-camera rig and no shared meshes (an empty mesh directory)."""
-  return samples.SceneSampling(image_size=32, rig_views=12, min_object_pixels=8,
-                               mesh_directory=str(tmp_path_factory.mktemp("no_meshes")))
+  return scenes.SceneSampling(image_size=32, rig_views=12, min_object_pixels=8,
+                              mesh_directory=str(tmp_path_factory.mktemp("no_meshes")))
 
 
 # The default model's training tests: a tiny architecture (latent factor 2) and a tiny dataset.

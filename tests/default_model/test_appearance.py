@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from signerf_jax.data import synthetic
-from signerf_jax.default_model import appearance, captions, objects, samples
+from signerf_jax.data import synthetic, synthetic_render
+from signerf_jax.default_model import appearance, captions, objects, samples, scenes
 from signerf_jax.geometry import reference_cameras
 from signerf_jax.metrics import colors
 
@@ -17,7 +17,7 @@ from signerf_jax.metrics import colors
 @pytest.mark.parametrize("pattern", ["striped", "checkered", "spotted"])
 def test_a_surface_point_has_one_albedo_from_every_camera(tiny_sampling, kind_name, pattern):
   rng = np.random.default_rng(1)
-  scene, _ = samples.random_scene(rng, tiny_sampling, captions.Attributes("ball", "red", "plain"))
+  scene, _ = scenes.random_scene(rng, tiny_sampling, captions.Attributes("ball", "red", "plain"))
   kind = next(kind for kind in tiny_sampling.catalogue() if kind.name == kind_name)
   look = appearance.random_appearance(rng, "red", pattern)
   placement = objects.Placement(center=np.array([0.1, -0.2]), footprint_radius=0.3, yaw=0.7,
@@ -30,7 +30,7 @@ def test_a_surface_point_has_one_albedo_from_every_camera(tiny_sampling, kind_na
   aims = center + rng.uniform(-0.15, 0.15, (400, 3))
   directions = aims - first_eye
   directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
-  hits = synthetic.cast_rays(scene, np.broadcast_to(first_eye, aims.shape), directions)
+  hits = synthetic_render.cast_rays(scene, np.broadcast_to(first_eye, aims.shape), directions)
   on_object = hits.object_ids == 1
   points = first_eye + hits.t[on_object, None] * directions[on_object]
   # Object coordinates by the module's definition: base centre at 0, no yaw, footprint radius 1.
@@ -42,8 +42,8 @@ def test_a_surface_point_has_one_albedo_from_every_camera(tiny_sampling, kind_na
   second_eye = center + np.array([-1.2, 1.3, 0.8])
   back = points - second_eye
   distance = np.linalg.norm(back, axis=-1)
-  second = synthetic.cast_rays(scene, np.broadcast_to(second_eye, back.shape),
-                               back / distance[:, None])
+  second = synthetic_render.cast_rays(scene, np.broadcast_to(second_eye, back.shape),
+                                      back / distance[:, None])
   visible = (second.object_ids == 1) & (np.abs(second.t - distance) < 1e-6)
   assert visible.sum() > 20
   np.testing.assert_allclose(second.albedo[visible], hits.albedo[on_object][visible], atol=1e-9)

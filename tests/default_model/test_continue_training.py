@@ -8,13 +8,14 @@ import jax
 import numpy as np
 import pytest
 
-from signerf_jax.default_model import export, stages, training
+from signerf_jax.default_model import export, stage_settings, stages, training
 from signerf_jax.errors import InputError
 
 # No steps: what a stage returns is exactly what it started from (and nothing compiles).
 STARTS_ONLY = stages.TrainingPlan(
-    seed=1, vae=training.VaeStage(num_steps=0, scaling_views=16),
-    unet=training.UNetStage(num_steps=0), controlnet=training.ControlNetStage(num_steps=0))
+    seed=1, vae=stage_settings.VaeStage(num_steps=0, scaling_views=16),
+    unet=stage_settings.UNetStage(num_steps=0),
+    controlnet=stage_settings.ControlNetStage(num_steps=0))
 BUDGET = training.RunBudget(progress=False)
 
 

@@ -5,8 +5,10 @@ import types
 import numpy as np
 import pytest
 
-from signerf_jax.default_model import batches, captions, evaluation, samples
+from signerf_jax.default_model import (batches, captions, evaluation, evaluation_generation,
+                                       generated_objects, samples)
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import silhouettes
 
 RED, BLUE, GREEN = (0.8, 0.1, 0.08), (0.12, 0.25, 0.85), (0.15, 0.65, 0.18)
 
@@ -39,15 +41,15 @@ def scene_with_object():
 
 def test_segmentation_finds_the_object_and_ignores_specks_and_the_unmasked():
   generated, background, mask, silhouette = scene_with_object()
-  found = evaluation.segment_objects(generated[None], background[None], mask[None],
-                                     difference_threshold=0.1, min_component_pixels=4)
+  found = generated_objects.segment_objects(generated[None], background[None], mask[None],
+                                            difference_threshold=0.1, min_component_pixels=4)
   np.testing.assert_array_equal(found[0], silhouette)
 
 
 def test_segmentation_without_clean_up_keeps_the_speck_and_the_hole():
   generated, background, mask, silhouette = scene_with_object()
-  found = evaluation.segment_objects(generated[None], background[None], mask[None],
-                                     difference_threshold=0.1, min_component_pixels=1)[0]
+  found = generated_objects.segment_objects(generated[None], background[None], mask[None],
+                                            difference_threshold=0.1, min_component_pixels=1)[0]
   assert found[19, 4] and not found[9, 11]
   assert found.sum() == silhouette.sum()  # One pixel missing (the hole), one extra (the speck).
 
@@ -57,7 +59,8 @@ def test_segmentation_threshold_is_per_channel(threshold, expected):
   background = np.full((1, 8, 8, 3), 0.5, np.float32)
   generated = background.copy()
   generated[0, 2:6, 2:6, 1] += 0.1  # One channel moves by 0.1.
-  found = evaluation.segment_objects(generated, background, np.ones((1, 8, 8)), threshold, 4)
+  found = generated_objects.segment_objects(generated, background, np.ones((1, 8, 8)), threshold,
+                                            4)
   assert found[0, 3, 3] == expected
 
 
@@ -65,21 +68,22 @@ def test_hue_segmentation_finds_the_named_colour_and_ignores_repainted_ground():
   generated, _, mask, silhouette = scene_with_object()
   generated[9, 11] = RED  # No pinhole: hue segmentation does not look at the ground.
   generated[1:22, 16:19] = striped_ground()[1:22, 16:19] + 0.2  # Ground repainted lighter.
-  found = evaluation.segment_by_hue(generated[None], mask[None], ["red"],
-                                    min_component_pixels=4)
+  found = generated_objects.segment_by_hue(generated[None], mask[None], ["red"],
+                                           min_component_pixels=4)
   np.testing.assert_array_equal(found[0], silhouette)
-  assert not evaluation.segment_by_hue(generated[None], mask[None], ["blue"], 4).any()
+  assert not generated_objects.segment_by_hue(generated[None], mask[None], ["blue"], 4).any()
   # The difference segmentation counts the repainted ground as object.
-  by_difference = evaluation.segment_objects(generated[None], striped_ground()[None],
-                                             mask[None], 0.1, 4)
+  by_difference = generated_objects.segment_objects(generated[None], striped_ground()[None],
+                                                    mask[None], 0.1, 4)
   assert by_difference[0, 5, 17] and not found[0, 5, 17]
 
 
 def test_precision_recall_and_changed_ground_say_where_the_iou_is_lost():
   generated, _, mask, silhouette = scene_with_object()
   generated[1:22, 16:19] = striped_ground()[1:22, 16:19] + 0.2  # Ground repainted lighter.
-  found = evaluation.segment_objects(generated[None], striped_ground()[None], mask[None], 0.1, 4)
-  precision, recall = evaluation.pooled_precision_recall(found, silhouette[None])
+  found = generated_objects.segment_objects(generated[None], striped_ground()[None], mask[None],
+                                            0.1, 4)
+  precision, recall = silhouettes.pooled_precision_recall(found, silhouette[None])
   hits = np.sum(found & silhouette)
   assert precision == pytest.approx(hits / found.sum()) and precision < 1
   assert recall == pytest.approx(hits / silhouette.sum())
@@ -88,12 +92,12 @@ def test_precision_recall_and_changed_ground_say_where_the_iou_is_lost():
   repainted[:, :16] = repainted[:, 19:] = False
   repainted[:1] = repainted[22:] = False
   repainted[19, 4] = True  # The speck: counted before specks are dropped.
-  share = evaluation.changed_ground_share(generated[None], striped_ground()[None], mask[None],
-                                          silhouette[None], 0.1)
+  share = generated_objects.changed_ground_share(generated[None], striped_ground()[None],
+                                                 mask[None], silhouette[None], 0.1)
   assert share == pytest.approx(repainted.sum() / ground.sum())
-  assert evaluation.changed_ground_share(striped_ground()[None], striped_ground()[None],
-                                         mask[None], silhouette[None], 0.1) == 0.0
-  assert np.isnan(evaluation.pooled_precision_recall(np.zeros((1, 4, 4), bool),
+  assert generated_objects.changed_ground_share(striped_ground()[None], striped_ground()[None],
+                                                mask[None], silhouette[None], 0.1) == 0.0
+  assert np.isnan(silhouettes.pooled_precision_recall(np.zeros((1, 4, 4), bool),
                                                      np.ones((1, 4, 4), bool))[0])
 
 
@@ -105,18 +109,9 @@ def test_segmentation_recovers_rendered_objects(tiny_sampling):
                                 captions.CaptionSettings(), sheet=False).views
     rgb, background = (views[name].astype(np.float32) / 255 for name in ("rgb", "background_rgb"))
     mask = batches.box_masks(views["boxes"], tiny_sampling.image_size, tiny_sampling.image_size)
-    found = evaluation.segment_objects(rgb, background, mask, 0.1, 4)
-    ious.append(evaluation.silhouette_iou(found, views["silhouette"] > 0)[0])
+    found = generated_objects.segment_objects(rgb, background, mask, 0.1, 4)
+    ious.append(silhouettes.silhouette_iou(found, views["silhouette"] > 0)[0])
   assert np.mean(ious) > 0.9, ious
-
-
-def test_silhouette_iou_known_values():
-  left, right = np.zeros((2, 8, 8), bool), np.zeros((2, 8, 8), bool)
-  left[0, 2:6, 0:4] = True
-  right[0, 2:6, 2:6] = True  # Overlap of 8 pixels, union of 24.
-  ious = evaluation.silhouette_iou(np.concatenate([left, left[:1], right[:1]]),
-                                   np.concatenate([right, left[:1], np.zeros((1, 8, 8), bool)]))
-  np.testing.assert_allclose(ious, [1 / 3, 1.0, 1.0, 0.0])  # Both empty counts as 1.
 
 
 def test_object_colors_names_and_means():
@@ -125,26 +120,27 @@ def test_object_colors_names_and_means():
   images[1, 2:6, 2:6] = BLUE
   objects = np.zeros((3, 8, 8), bool)
   objects[:2, 2:6, 2:6] = True
-  names, means = evaluation.object_colors(images, objects)
+  names, means = generated_objects.object_colors(images, objects)
   assert names == ["red", "blue", None]
   np.testing.assert_allclose(means[:2], [RED, BLUE], atol=1e-6)
   assert np.all(np.isnan(means[2]))
 
 
 def test_color_agreement_counts_pairs():
-  assert evaluation.color_agreement(["red", "red", "blue"]) == pytest.approx(1 / 3)
-  assert evaluation.color_agreement(["green"] * 5) == 1.0
-  assert evaluation.color_agreement([None, None]) == 0.0  # Missing objects agree with nothing.
-  assert evaluation.color_agreement(["red"], ["red", "blue", "red", "red"]) == 0.75
+  assert generated_objects.color_agreement(["red", "red", "blue"]) == pytest.approx(1 / 3)
+  assert generated_objects.color_agreement(["green"] * 5) == 1.0
+  # Missing objects agree with nothing.
+  assert generated_objects.color_agreement([None, None]) == 0.0
+  assert generated_objects.color_agreement(["red"], ["red", "blue", "red", "red"]) == 0.75
   with pytest.raises(InputError):
-    evaluation.color_agreement(["red"])
+    generated_objects.color_agreement(["red"])
 
 
 def test_mean_color_distance_skips_missing_objects():
   means = np.array([[0.0, 0.0, 0.0], [0.0, 0.3, 0.4], [np.nan] * 3])
-  assert evaluation.mean_color_distance(means) == pytest.approx(0.5)
-  assert evaluation.mean_color_distance(means[:1], means) == pytest.approx(0.25)
-  assert np.isnan(evaluation.mean_color_distance(means[2:], means[:1]))
+  assert generated_objects.mean_color_distance(means) == pytest.approx(0.5)
+  assert generated_objects.mean_color_distance(means[:1], means) == pytest.approx(0.25)
+  assert np.isnan(generated_objects.mean_color_distance(means[2:], means[:1]))
 
 
 @pytest.mark.parametrize("ious, rising, shape_passes", [
@@ -179,18 +175,19 @@ def test_quality_gates_color_and_consistency(color, agreement, color_passes, con
 
 
 def test_evaluation_keys_are_reproducible_and_distinct():
-  key = evaluation.evaluation_key(0, "sheet", 3, 1)
-  np.testing.assert_array_equal(key, evaluation.evaluation_key(0, "sheet", 3, 1))
+  key = evaluation_generation.evaluation_key(0, "sheet", 3, 1)
+  np.testing.assert_array_equal(key, evaluation_generation.evaluation_key(0, "sheet", 3, 1))
   assert key.shape == (2,) and key.dtype == np.uint32
-  others = [evaluation.evaluation_key(*arguments) for arguments in
+  others = [evaluation_generation.evaluation_key(*arguments) for arguments in
             ((1, "sheet", 3, 1), (0, "slot", 3, 1), (0, "sheet", 4, 1), (0, "sheet", 3, 2))]
   assert len({tuple(key)} | {tuple(other) for other in others}) == 5
 
 
 def test_call_timer_separates_compilation(monkeypatch):
   clock = iter([0.0, 10.0, 20.0, 22.0, 30.0, 32.5, 40.0, 41.0, 50.0, 56.0])
-  monkeypatch.setattr(evaluation, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
-  timer = evaluation.CallTimer()
+  monkeypatch.setattr(evaluation_generation, "time",
+                      types.SimpleNamespace(perf_counter=lambda: next(clock)))
+  timer = evaluation_generation.CallTimer()
   shape = (64, 64, 3)
   for task, input_shape in (("single", shape), ("single", shape), ("single", shape),
                             ("slot", (128, 192, 3)), ("other_slot", (128, 192, 3))):
@@ -220,9 +217,10 @@ def test_select_samples_takes_sheets_without_a_color():
   singles = {"caption": np.array(["a cow"] * 5)}
   sheets = {"names_color": np.array([True, False, True, False, False])}
   settings = evaluation.EvaluationSettings(num_singles=3, num_sheets=2)
-  single_indices, sheet_indices = evaluation.select_samples(singles, sheets, settings)
+  single_indices, sheet_indices = evaluation_generation.select_samples(singles, sheets, settings)
   np.testing.assert_array_equal(single_indices, [0, 1, 2])
   np.testing.assert_array_equal(sheet_indices, [1, 3])
   with pytest.raises(InputError) as error:
-    evaluation.select_samples(singles, sheets, evaluation.EvaluationSettings(num_singles=6))
+    evaluation_generation.select_samples(singles, sheets,
+                                         evaluation.EvaluationSettings(num_singles=6))
   assert error.value.field == "default_model_evaluation.num_singles"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from signerf_jax import camera as camera_lib
-from signerf_jax.default_model import captions, objects, samples
+from signerf_jax.default_model import captions, objects, samples, scenes
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import colors
 
@@ -115,7 +115,7 @@ def test_crop_views_frame_the_object_as_the_pipelines_selection_crops(tiny_sampl
 
 def test_generator_runs_without_the_shared_meshes(monkeypatch, tmp_path):
   monkeypatch.setenv("SIGNERF_SHARED_DATA", str(tmp_path / "missing"))
-  settings = samples.SceneSampling(image_size=32, rig_views=12, min_object_pixels=8)
+  settings = scenes.SceneSampling(image_size=32, rig_views=12, min_object_pixels=8)
   catalogue = settings.catalogue()
   assert [kind.name for kind in catalogue] == [
       "cow", "cube", "ball", "cylinder", "cone", "torus", "capsule"]
@@ -127,7 +127,7 @@ def test_generator_runs_without_the_shared_meshes(monkeypatch, tmp_path):
 @pytest.mark.shared_data
 def test_catalogue_uses_the_shared_meshes(monkeypatch, shared_data):
   monkeypatch.setenv("SIGNERF_SHARED_DATA", str(shared_data))
-  settings = samples.SceneSampling(image_size=32, rig_views=12, min_object_pixels=8)
+  settings = scenes.SceneSampling(image_size=32, rig_views=12, min_object_pixels=8)
   catalogue = {kind.name: kind for kind in settings.catalogue()}
   assert tuple(catalogue) == objects.KINDS
   assert catalogue["cow"].source.endswith("spot_triangulated.obj")

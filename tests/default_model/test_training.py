@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from signerf_jax.default_model import model, training, training_data
+from signerf_jax.default_model import losses, model, stage_settings, training, training_data
 from signerf_jax.diffusion import layers, schedulers
 from signerf_jax.errors import InputError
 
-VAE_SETTINGS = training.VaeStage(num_steps=4, batch_size=4, learning_rate=3e-3, warmup_steps=1,
-                                object_weight=4.0)
+VAE_SETTINGS = stage_settings.VaeStage(num_steps=4, batch_size=4, learning_rate=3e-3,
+                                       warmup_steps=1, object_weight=4.0)
 DIFFUSION_SETTINGS = dict(sheets_per_batch=2, singles_per_batch=2, learning_rate=2e-3,
                           warmup_steps=1, num_steps=3, caption_dropout=0.0)
 
@@ -24,7 +24,7 @@ def components(tiny_architecture, tiny_training_data):
 
 
 def test_batches_are_deterministic_per_step(tiny_training_data):
-  settings = training.UNetStage(**DIFFUSION_SETTINGS)
+  settings = stage_settings.UNetStage(**DIFFUSION_SETTINGS)
   make = lambda step: training_data.diffusion_batch(
       tiny_training_data, training_data.step_rng(0, "unet", step), 2, 3,
       settings.mask_kind_weights, settings.sheet_mode_weights, 0.5)
@@ -66,7 +66,7 @@ def test_object_weight_weights_the_reconstruction_of_object_pixels(components,
                                                                    tiny_training_data):
   batch = training_data.vae_batch(tiny_training_data, np.random.default_rng(0), 4, 0.0)
   params = model.init_vae(components, np.random.default_rng(0))
-  loss = lambda weight, object_pixels: float(training.vae_loss_fn(
+  loss = lambda weight, object_pixels: float(losses.vae_loss_fn(
       components, dataclasses.replace(VAE_SETTINGS, object_weight=weight))(
           params, {}, {**batch, "object": object_pixels}, jax.random.key(0))[0])
   assert loss(5.0, np.zeros_like(batch["object"])) == pytest.approx(loss(1.0, batch["object"]))
@@ -79,11 +79,11 @@ def test_inpainting_conditioning_follows_diffusers(components):
   image = jax.random.uniform(jax.random.key(0), (1, 8, 8, 3))
   mask = jnp.zeros((1, 8, 8, 1)).at[:, 2:6, 3:8].set(1.0)
   key = jax.random.key(1)
-  latents, latent_mask, masked_latents = training.inpainting_conditioning(
+  latents, latent_mask, masked_latents = losses.inpainting_conditioning(
       components, vae_params, image, mask, key)
   np.testing.assert_array_equal(latent_mask[0, ..., 0], mask[0, ::2, ::2, 0])
   # Encoded together in one batch: the masked image is the second half, with the same noise.
-  both = training.encode_latents(components, vae_params, jnp.concatenate(
+  both = losses.encode_latents(components, vae_params, jnp.concatenate(
       [2 * image - 1, (2 * image - 1) * (1 - mask)]), key)
   np.testing.assert_allclose(masked_latents, both[1:], atol=1e-6)
   np.testing.assert_allclose(latents, both[:1], atol=1e-6)
@@ -92,7 +92,7 @@ def test_inpainting_conditioning_follows_diffusers(components):
 def _loss_goes_down(loss_fn, params, frozen, batch, settings, steps=3):
   evaluate = jax.jit(lambda params: loss_fn(params, frozen, batch, jax.random.key(5))[0])
   state = training.init_state(params, settings, ("loss", "gradient_norm") + tuple(
-      name for name in training.DIFFUSION_METRICS + training.VAE_METRICS
+      name for name in losses.DIFFUSION_METRICS + losses.VAE_METRICS
       if name in jax.eval_shape(loss_fn, params, frozen, batch, jax.random.key(0))[1]))
   train_step = training.make_train_step(loss_fn, settings)
   before = float(evaluate(state.params))
@@ -106,7 +106,7 @@ def _loss_goes_down(loss_fn, params, frozen, batch, settings, steps=3):
 
 def test_vae_steps_reduce_the_loss(components, tiny_training_data):
   images = training_data.vae_batch(tiny_training_data, np.random.default_rng(0), 4, 0.3)
-  before, after = _loss_goes_down(training.vae_loss_fn(components, VAE_SETTINGS),
+  before, after = _loss_goes_down(losses.vae_loss_fn(components, VAE_SETTINGS),
                                   model.init_vae(components, np.random.default_rng(0)), {},
                                   images, VAE_SETTINGS)
   assert after < 0.9 * before
@@ -115,8 +115,8 @@ def test_vae_steps_reduce_the_loss(components, tiny_training_data):
 def _diffusion_setup(stage, components, tiny_architecture, tiny_training_data, **overrides):
   """(loss function, params, frozen, batch, settings) of the "unet" (joint with the
   ControlNet), "unet_alone" or "controlnet" stage."""
-  settings = (training.ControlNetStage if stage == "controlnet" else training.UNetStage)(
-      **{**DIFFUSION_SETTINGS, **overrides})
+  settings = (stage_settings.ControlNetStage if stage == "controlnet"
+              else stage_settings.UNetStage)(**{**DIFFUSION_SETTINGS, **overrides})
   batch = jax.tree.map(jnp.asarray, training_data.diffusion_batch(
       tiny_training_data, np.random.default_rng(0), 2, 2, settings.mask_kind_weights,
       settings.sheet_mode_weights, 0.0))
@@ -130,7 +130,7 @@ def _diffusion_setup(stage, components, tiny_architecture, tiny_training_data, *
   frozen = {name: value for name, value in weights.items()
             if name not in trained and (name != "controlnet" or stage != "unet_alone")}
   scheduler = schedulers.scheduler_config(tiny_architecture.scheduler_config())
-  return (training.diffusion_loss_fn(components, scheduler, settings), params, frozen, batch,
+  return (losses.diffusion_loss_fn(components, scheduler, settings), params, frozen, batch,
           settings)
 
 
@@ -147,7 +147,7 @@ def test_object_cells_mark_latent_cells_holding_any_object_pixel():
   pixels = np.zeros((2, 8, 8, 1), np.float32)
   pixels[0, 5, 2] = 1.0
   pixels[1, :4, 4:] = 1.0
-  cells = np.asarray(training.object_cells(jnp.asarray(pixels), (2, 2)))[..., 0]
+  cells = np.asarray(losses.object_cells(jnp.asarray(pixels), (2, 2)))[..., 0]
   np.testing.assert_array_equal(cells, [[[0, 0], [1, 0]], [[0, 1], [0, 0]]])
 
 
@@ -188,12 +188,12 @@ def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero
 
 
 def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_training_data):
-  loss_fn = training.vae_loss_fn(components, VAE_SETTINGS)
+  loss_fn = losses.vae_loss_fn(components, VAE_SETTINGS)
   make_batch = lambda step: training_data.vae_batch(
       tiny_training_data, training_data.step_rng(0, "vae", step), 4, 0.3)
   initial = lambda: model.init_vae(components, np.random.default_rng(0))
   run = lambda directory, max_steps: training.run_stage(
-      "vae", directory, VAE_SETTINGS, initial, {}, loss_fn, make_batch, training.VAE_METRICS,
+      "vae", directory, VAE_SETTINGS, initial, {}, loss_fn, make_batch, losses.VAE_METRICS,
       training.RunBudget(max_steps=max_steps, progress=False))
   straight = run(tmp_path / "straight", None)
   first = run(tmp_path / "resumed", 2)
@@ -212,30 +212,30 @@ def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_traini
 def test_checkpoint_restores_into_other_step_counts_and_refuses_another_model(
     tmp_path, components, tiny_architecture):
   params = model.init_vae(components, np.random.default_rng(0))
-  state = training.init_state(params, VAE_SETTINGS, training.VAE_METRICS)
+  state = training.init_state(params, VAE_SETTINGS, losses.VAE_METRICS)
   state = state.replace(step=jnp.asarray(3, jnp.int32), history={
       name: values.at[:3].set(1.0) for name, values in state.history.items()})
-  path = tmp_path / training.CHECKPOINT_NAME
+  path = tmp_path
   training.save_checkpoint(path, state)
   restored = training.restore_checkpoint(path, state)
   jax.tree.map(np.testing.assert_array_equal, jax.tree.map(np.asarray, restored),
                jax.tree.map(np.asarray, state))
   # A stage given more steps trains on from its checkpoint: the history grows with NaN.
   longer = training.init_state(params, dataclasses.replace(VAE_SETTINGS, num_steps=9),
-                               training.VAE_METRICS)
+                               losses.VAE_METRICS)
   extended = training.restore_checkpoint(path, longer)
   assert int(extended.step) == 3
   loss = np.asarray(extended.history["loss"])
   assert loss.shape == (9,) and np.all(loss[:3] == 1.0) and np.isnan(loss[3:]).all()
   # Given fewer steps than it has done, it is finished and keeps every step's metrics.
   shorter = training.init_state(params, dataclasses.replace(VAE_SETTINGS, num_steps=2),
-                                training.VAE_METRICS)
+                                losses.VAE_METRICS)
   np.testing.assert_array_equal(
       training.restore_checkpoint(path, shorter).history["loss"], state.history["loss"][:3])
   other = model.build(dataclasses.replace(tiny_architecture, vae_block_out_channels=(8, 24)),
                       8)
   wider = training.init_state(model.init_vae(other, np.random.default_rng(0)), VAE_SETTINGS,
-                              training.VAE_METRICS)
+                              losses.VAE_METRICS)
   with pytest.raises(InputError, match="checkpoint"):
     training.restore_checkpoint(path, wider)
 

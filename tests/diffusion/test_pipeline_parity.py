@@ -16,6 +16,7 @@ import pytest
 
 from signerf_jax.clip import tokenizer as tokenizer_lib
 from signerf_jax.diffusion import pipeline as pipeline_lib
+from signerf_jax.diffusion import pipeline_components
 from signerf_jax.diffusion import sampler
 from signerf_jax.errors import InputError
 
@@ -286,12 +287,12 @@ def test_tokenizer_from_tokenizer_json_matches_transformers(checkpoints):
 def copy_pipeline(source, destination, drop=(), edit_index=None):
   """A copy of a pipeline directory without the `drop` subfolders and model_index entries."""
   shutil.copytree(source, destination, ignore=shutil.ignore_patterns(*drop))
-  index = json.loads((source / pipeline_lib.MODEL_INDEX).read_text())
+  index = json.loads((source / pipeline_components.MODEL_INDEX).read_text())
   for name in drop:
     index.pop(name)
   if edit_index:
     edit_index(index)
-  (destination / pipeline_lib.MODEL_INDEX).write_text(json.dumps(index))
+  (destination / pipeline_components.MODEL_INDEX).write_text(json.dumps(index))
   return destination
 
 

@@ -1,4 +1,4 @@
-"""The compiled sampler: mask handling and paste-back against diffusers, noise, sheet-sized runs.
+"""The compiled sampler: noise, sheet-sized runs.
 
 The full pipeline's parity with diffusers is in test_pipeline_parity.py.
 """
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from signerf_jax.clip import text as clip_text
-from signerf_jax.diffusion import model_configs, sampler, schedulers, weights
+from signerf_jax.diffusion import guidance as guidance_lib
+from signerf_jax.diffusion import model_configs, sampler, schedulers, solvers, weights
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 from signerf_jax.diffusion.vae import AutoencoderKL
@@ -60,12 +61,12 @@ def test_a_two_by_three_sheet_runs_and_memory_does_not_grow_with_the_steps():
   settings = sampler.SamplerSettings(paste_back=True, mask_blur=0.0)
 
   def arguments(num_steps):
-    schedule = schedulers.make_schedule(config, num_steps)
+    schedule = solvers.make_schedule(config, num_steps)
     noise = sampler.draw_noise(jax.random.split(jax.random.key(0), 1),
                                (height // 4, width // 4, 4), num_steps)
-    guidance = sampler.Guidance(jnp.float32(7.5),
-                                jnp.asarray(sampler.controlnet_conditioning_scale_per_step(
-                                    num_steps, 0.8)))
+    guidance = guidance_lib.Guidance(
+        jnp.float32(7.5),
+        jnp.asarray(guidance_lib.controlnet_conditioning_scale_per_step(num_steps, 0.8)))
     return models, schedule, prompt, None, inputs, noise, guidance
 
   compiled = {steps: sampler.sample.lower(*arguments(steps), settings=settings).compile()
@@ -90,67 +91,3 @@ def test_noise_of_a_sample_depends_only_on_its_key():
   assert batch.steps.shape == (3, 5, 4, 6, 4)
   assert not np.allclose(batch.latents[0], batch.latents[1])
   assert not np.allclose(batch.latents[0], batch.image_posterior[0])
-
-
-@pytest.mark.parametrize("num_steps, start, end, expected", [
-    (3, 0.34, 1.0, [0, 0, 1]),  # 1/3 < 0.34: the second step is still off.
-    (3, 0.0, 0.6, [1, 0, 0]),
-    (4, 0.25, 0.75, [0, 1, 1, 0]),
-    (2, 0.0, 1.0, [1, 1]),
-])
-def test_controlnet_scale_per_step_follows_diffusers_controlnet_keep(num_steps, start, end,
-                                                                    expected):
-  np.testing.assert_array_equal(
-      sampler.controlnet_conditioning_scale_per_step(num_steps, 0.7, start, end),
-      0.7 * np.asarray(expected, np.float32))
-
-
-@pytest.mark.parametrize("start, end", [(0.5, 0.5), (-0.1, 1.0), (0.0, 1.2)])
-def test_bad_control_guidance_is_an_input_error(start, end):
-  with pytest.raises(InputError):
-    sampler.controlnet_conditioning_scale_per_step(3, 1.0, start, end)
-
-
-def test_mask_binarization_is_diffusers():
-  mask = jnp.asarray([0.0, 0.49, 0.5, 0.51, 1.0])
-  np.testing.assert_array_equal(sampler.binarize_mask(mask), [0, 0, 1, 1, 1])
-
-
-@pytest.mark.parity
-@pytest.mark.parametrize("size, latent_size", [
-    ((32, 48), (4, 6)), ((30, 50), (7, 9)), ((17, 5), (4, 3)), ((8, 8), (16, 16))])
-def test_mask_downsampling_matches_torch_nearest(size, latent_size):
-  torch = pytest.importorskip("torch")
-  mask = np.random.default_rng(1).random((2, *size, 1)).astype(np.float32)
-  expected = torch.nn.functional.interpolate(torch.from_numpy(mask.transpose(0, 3, 1, 2)),
-                                             size=latent_size).numpy().transpose(0, 2, 3, 1)
-  np.testing.assert_array_equal(sampler.downsample_mask(jnp.asarray(mask), *latent_size), expected)
-
-
-@pytest.mark.parity
-@pytest.mark.parametrize("radius", [0, 1, 4, 9])
-def test_blurred_paste_back_matches_diffusers_apply_overlay(radius):
-  """diffusers' mask_processor.blur (PIL GaussianBlur) then apply_overlay, on 8-bit images;
-  ours works in float, so they agree to PIL's rounding."""
-  diffusers = pytest.importorskip("diffusers")
-  from PIL import Image  # pylint: disable=g-import-not-at-top
-  processor = diffusers.image_processor.VaeImageProcessor(
-      do_normalize=False, do_binarize=True, do_convert_grayscale=True)
-  rng = np.random.default_rng(radius)
-  mask = np.zeros((40, 56), np.uint8)
-  mask[10:30, 5:45] = 255
-  mask[0:4, 50:] = 255  # Touching the border: PIL repeats edge pixels.
-  original, generated = (rng.integers(0, 256, (40, 56, 3), np.uint8) for _ in range(2))
-
-  blurred = processor.blur(Image.fromarray(mask), blur_factor=radius) if radius else \
-      Image.fromarray(mask)
-  expected = np.asarray(processor.apply_overlay(blurred, Image.fromarray(original),
-                                                Image.fromarray(generated)), np.float32) / 255
-  ours_mask = sampler.blur_mask(jnp.asarray(mask[None, ..., None] / 255, jnp.float32), radius)
-  np.testing.assert_allclose(ours_mask[0, ..., 0], np.asarray(blurred, np.float32) / 255,
-                             atol=1.5 / 255, rtol=0)
-  ours = sampler.paste_back(jnp.asarray(original[None] / 255, jnp.float32),
-                            jnp.asarray(generated[None] / 255, jnp.float32), ours_mask)
-  np.testing.assert_allclose(ours[0], expected, atol=2.5 / 255, rtol=0)
-  if radius:
-    assert np.abs(np.asarray(ours_mask[0, ..., 0]) - mask / 255).max() > 0.3

@@ -1,4 +1,4 @@
-"""Schedulers: parity with diffusers' DDIM, DPM-Solver++ 2M and Euler ancestral schedulers."""
+"""Schedulers and solvers: parity with diffusers' DDIM, DPM-Solver++ 2M and Euler ancestral."""
 
 import json
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from signerf_jax.diffusion import schedulers
+from signerf_jax.diffusion import schedulers, solvers
 from signerf_jax.errors import InputError
 
 # Stable Diffusion 1.x's scheduler_config.json (a PNDM config, reused by every kind).
@@ -114,8 +114,8 @@ def test_timesteps_and_noise_levels(kind, options, spacing):
         reference = reference_scheduler(kind, full)
         reference.set_timesteps(num_steps)
         first_step = pipeline_first_step(num_steps, strength)
-        schedule = schedulers.make_schedule(schedulers.scheduler_config(SD_CONFIG, kind, **full),
-                                            num_steps, strength)
+        schedule = solvers.make_schedule(schedulers.scheduler_config(SD_CONFIG, kind, **full),
+                                         num_steps, strength)
         case = f"{beta_schedule} {num_steps} steps strength {strength}"
         timesteps = reference.timesteps[first_step:].numpy()
         np.testing.assert_array_equal(schedule.timesteps, timesteps, err_msg=case)
@@ -162,8 +162,8 @@ def test_steps_and_loop_match_reference(kind, options, num_steps, strength):
   clean = rng.standard_normal(LATENT_SHAPE).astype(np.float32)
   noise = rng.standard_normal(LATENT_SHAPE).astype(np.float32)
   timesteps, record = run_reference(kind, options, num_steps, strength, clean, noise)
-  schedule = schedulers.make_schedule(schedulers.scheduler_config(SD_CONFIG, kind, **options),
-                                      num_steps, strength)
+  schedule = solvers.make_schedule(schedulers.scheduler_config(SD_CONFIG, kind, **options),
+                                   num_steps, strength)
   np.testing.assert_array_equal(schedule.timesteps, timesteps)
 
   if strength == 1.0:
@@ -193,16 +193,16 @@ def test_loop_does_not_recompile_for_another_schedule_of_the_same_shape():
   config = schedulers.scheduler_config(SD_CONFIG, "dpm_solver_multistep")
   latents = jnp.ones(LATENT_SHAPE)
   step_noise = jnp.zeros((4, *LATENT_SHAPE))
-  sampling_loop(schedulers.make_schedule(config, 4), latents, step_noise)
+  sampling_loop(solvers.make_schedule(config, 4), latents, step_noise)
   cache_size = sampling_loop._cache_size()  # pylint: disable=protected-access
   karras = schedulers.scheduler_config(SD_CONFIG, "dpm_solver_multistep", use_karras_sigmas=True)
-  samples = sampling_loop(schedulers.make_schedule(karras, 8, strength=0.5), latents, step_noise)
+  samples = sampling_loop(solvers.make_schedule(karras, 8, strength=0.5), latents, step_noise)
   assert sampling_loop._cache_size() == cache_size  # pylint: disable=protected-access
   assert np.isfinite(samples).all()
 
 
 def test_euler_ancestral_noise_from_key():
-  schedule = schedulers.make_schedule(schedulers.scheduler_config(SD_CONFIG, "euler_ancestral"), 5)
+  schedule = solvers.make_schedule(schedulers.scheduler_config(SD_CONFIG, "euler_ancestral"), 5)
   sample = jnp.ones(LATENT_SHAPE)
   output = 0.5 * sample
   key = jax.random.key(3)
@@ -247,4 +247,4 @@ def test_unsupported_configurations_name_the_field(config, kind, overrides, fiel
 def test_bad_step_counts_and_strengths(num_steps, strength):
   config = schedulers.scheduler_config(SD_CONFIG, "ddim")
   with pytest.raises(InputError):
-    schedulers.make_schedule(config, num_steps, strength)
+    solvers.make_schedule(config, num_steps, strength)

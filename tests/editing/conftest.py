@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from signerf_jax.data import synthetic
+from signerf_jax.data import synthetic, synthetic_render
 
 from random_pipeline import write_random_pipeline
 
@@ -22,7 +22,7 @@ def tiny_scene(tmp_path_factory):
   The narrow field of view keeps the scene's corners out of some views (empty masks there).
   """
   directory = tmp_path_factory.mktemp("tiny_scene")
-  _, scene = synthetic.generate(
+  _, scene = synthetic_render.generate(
       directory, seed=2, settings=synthetic.SceneSettings(num_primitives=2, num_meshes=0),
-      rig=synthetic.CameraRig(num_views=12, image_size=40, field_of_view_degrees=40.0))
+      rig=synthetic_render.CameraRig(num_views=12, image_size=40, field_of_view_degrees=40.0))
   return directory, scene

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from signerf_jax import configs
-from signerf_jax.editing import demo, pipeline
+from signerf_jax.editing import commands, demo, stages
 from signerf_jax.editing.project import canonical_json
 
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "ablations.py"
-# A scene description as `synthetic.generate` writes it (only what the edit bindings read).
+# A scene description as `synthetic_render.generate` writes it (only what the edit bindings read).
 SCENE = {"free_spot": {"center": [0.2, -0.3, 0.0], "radius": 0.3}, "up": [0.0, 0.0, 1.0]}
 
 
@@ -44,7 +44,7 @@ def edit_key(tmp_path, variant_bindings, gin_files=("demo", "ablations")):
                               str(tmp_path / "model"))
   common.append(f"EditConfig.original_run = {str(tmp_path / 'nerf')!r}")
   configs.parse_gin(list(gin_files), common + list(variant_bindings))
-  return canonical_json(pipeline.EditRun(tmp_path / "edit").key("evaluate"))
+  return canonical_json(stages.edit_key(tmp_path / "edit", commands.edit_settings()))
 
 
 @pytest.mark.parametrize("gin_files", [("demo", "ablations"),

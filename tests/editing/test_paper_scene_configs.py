@@ -9,11 +9,8 @@ import gin
 import pytest
 
 from signerf_jax import configs
-from signerf_jax.diffusion.pipeline import GenerationOptions
-from signerf_jax.editing import pipeline  # noqa: F401  (registers every configurable of an edit)
-from signerf_jax.editing.config import EditConfig, SelectionConfig, SheetConfig
+from signerf_jax.editing import commands
 from signerf_jax.errors import InputError
-from signerf_jax.nerf.train import TrainConfig
 
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "paper_scenes.py"
 
@@ -74,22 +71,21 @@ def test_there_is_one_config_per_row_of_the_papers_table():
 def test_a_scene_binds_its_row_of_the_table(scene):
   kind, first, second, guidance = PAPER_TABLE[scene]
   parse_scene(scene, user_inputs(scene))
-  edit, selection, sheet = EditConfig(), SelectionConfig(), SheetConfig()
+  settings = commands.edit_settings()
+  edit, selection, sheet = settings.edit, settings.selection, settings.sheet
   assert edit.prompt and edit.data == "/data/scene" and edit.model == "/models/sdxl"
   assert selection.kind == kind
   # The paper's choice: retrain for inserted objects, fine-tune for edits.
   assert edit.nerf_update == ("retrain" if kind == "proxy" else "finetune")
   assert (sheet.rows, sheet.columns) == (2, 3)
   assert edit.second_iteration == (second is not None)
-  for scope, expected in (("first_iteration", first), ("second_iteration", second)):
+  for iteration, expected in ((1, first), (2, second)):
     if expected is None:
       continue
-    with gin.config_scope(scope):
-      options = GenerationOptions()
+    options = settings.generation_options(iteration)
     assert (options.strength, options.controlnet_conditioning_scale) == expected
     assert options.guidance_scale == guidance and options.paste_back
-  with gin.config_scope("original"):
-    assert TrainConfig().steps == 30000
+  assert settings.training["original"].steps == 30000
 
 
 @pytest.mark.parametrize("scene", ["bear_grizzly", "person_batman", "field_cow"])

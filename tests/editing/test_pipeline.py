@@ -10,9 +10,16 @@ import pytest
 
 from signerf_jax import camera, configs, files
 from signerf_jax.data import load_dataset
-from signerf_jax.editing import pipeline
+from signerf_jax.editing.project import EditDirectory
+from signerf_jax.editing import commands, stages
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import render, sampling
+
+
+def settings_of(chosen: list[str]):
+  """The edit's settings from gin bindings, as the commands build them."""
+  configs.parse_gin([], chosen)
+  return commands.edit_settings()
 
 
 def bindings(scene_dir: Path, model: Path, scene: dict, **overrides) -> list[str]:
@@ -41,9 +48,8 @@ def finished_edit(tiny_scene, random_model, tmp_path_factory):
   scene = files.read_json(scene_dir / "scene.json")
   directory = tmp_path_factory.mktemp("edit")
   chosen = bindings(scene_dir, random_model, scene)
-  configs.parse_gin([], chosen)
   lines = []
-  pipeline.run_edit(directory, progress=False, log=lines.append)
+  stages.run_edit(directory, settings_of(chosen), progress=False, log=lines.append)
   yield directory, lines, chosen
   gin.clear_config()
 
@@ -92,8 +98,7 @@ def region_hits(model, cameras) -> np.ndarray:
 
 def test_the_edited_nerf_changes_only_the_grown_selection_box(finished_edit):
   directory, lines, chosen = finished_edit
-  configs.parse_gin([], chosen)
-  run = pipeline.EditRun(directory, progress=False)
+  run = stages.EditContext(EditDirectory(directory), settings_of(chosen), progress=False)
   original, edited = run.nerf(0), run.nerf(1)
   lower, upper = np.asarray(edited.model.edit_region)
   selection_lower, selection_upper = run.selection.bounds
@@ -110,14 +115,14 @@ def test_the_edited_nerf_changes_only_the_grown_selection_box(finished_edit):
 
 def test_a_rerun_skips_finished_stages_and_a_new_sheet_redoes_only_what_follows(finished_edit):
   directory, _, chosen = finished_edit
-  configs.parse_gin([], chosen)
   lines = []
-  pipeline.run_edit(directory, until="sheet", progress=False, log=lines.append)
+  stages.run_edit(directory, settings_of(chosen), until="sheet", progress=False,
+                  log=lines.append)
   assert all("done before" in line for line in lines), lines
 
-  configs.parse_gin([], chosen + ["EditConfig.sheet = '0/1@5'"])
   lines = []
-  pipeline.run_edit(directory, until="update", progress=False, log=lines.append)
+  stages.run_edit(directory, settings_of(chosen + ["EditConfig.sheet = '0/1@5'"]),
+                  until="update", progress=False, log=lines.append)
   redone = {line.split("] ")[1].split(":")[0] for line in lines if "done before" not in line}
   assert redone == {"sheet", "update"}, lines
   sheet = np.load(directory / "sheet" / "sheet.npz")
@@ -126,18 +131,29 @@ def test_a_rerun_skips_finished_stages_and_a_new_sheet_redoes_only_what_follows(
 
 def test_an_unknown_stage_is_an_error_naming_the_stages(finished_edit):
   directory, _, chosen = finished_edit
-  configs.parse_gin([], chosen)
   with pytest.raises(InputError, match="unknown stage 'sheets'.*update"):
-    pipeline.run_edit(directory, until="sheets", progress=False, log=lambda line: None)
+    stages.run_edit(directory, settings_of(chosen), until="sheets", progress=False,
+                    log=lambda line: None)
 
 
 def test_without_an_edit_region_the_whole_nerf_is_fine_tuned(finished_edit):
   directory, _, chosen = finished_edit
-  configs.parse_gin([], chosen)  # Back to the fixture's edit (earlier tests may change it).
-  pipeline.run_edit(directory, until="finetune", progress=False, log=lambda line: None)
-  configs.parse_gin([], chosen + ["FinetuneConfig.edit_region = False"])
+  # Back to the fixture's edit (earlier tests may change it).
+  stages.run_edit(directory, settings_of(chosen), until="finetune", progress=False,
+                  log=lambda line: None)
   lines = []
-  pipeline.run_edit(directory, until="finetune", progress=False, log=lines.append)
+  edit = stages.run_edit(directory, settings_of(chosen + ["FinetuneConfig.edit_region = False"]),
+                         until="finetune", progress=False, log=lines.append)
   redone = {line.split("] ")[1].split(":")[0] for line in lines if "done before" not in line}
   assert redone == {"finetune"}, lines
-  assert pipeline.EditRun(directory, progress=False).nerf(1).model.edit_region is None
+  assert edit.nerf(1).model.edit_region is None
+
+
+def test_a_command_saves_the_bindings_that_a_later_command_reads_back(finished_edit, capsys):
+  directory, _, chosen = finished_edit
+  settings = settings_of(chosen)
+  commands.run_command("edit", directory, progress=False)  # Every stage done before: fast.
+  assert "done before" in capsys.readouterr().out
+  gin.clear_config()
+  commands.parse_edit_config(directory, (), ())  # config.gin only, no bindings given.
+  assert commands.edit_settings() == settings

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from signerf_jax.data import synthetic
+from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.editing import crops
 from signerf_jax.editing import sheet
 from signerf_jax.geometry import control_depth
@@ -21,9 +21,9 @@ LAYOUT = sheet.SheetLayout(tile_height=TILE, tile_width=TILE)
 @pytest.fixture(scope="module")
 def scene_and_views():
   scene = synthetic.make_scene(seed=3, settings=synthetic.SceneSettings(num_meshes=0))
-  rig = synthetic.CameraRig(num_views=10, image_size=40)
-  cameras = synthetic.make_cameras(rig, scene.scene_bounds)
-  rgb, depth, object_ids = synthetic.render(scene, cameras)
+  rig = synthetic_render.CameraRig(num_views=10, image_size=40)
+  cameras = synthetic_render.make_cameras(rig, scene.scene_bounds)
+  rgb, depth, object_ids = synthetic_render.render(scene, cameras)
   return scene, cameras, rgb, depth, object_ids
 
 
@@ -43,7 +43,7 @@ def test_box_around_an_object_selects_its_pixels_and_builds_a_sheet(scene_and_vi
   assert report.dataset_views_seeing_selection >= 1
   assert np.all(report.fill_ratio > 0)
   # Reference views rendered from the ground truth, as a NeRF would render them.
-  reference_rgb, reference_depth, _ = synthetic.render(scene, reference)
+  reference_rgb, reference_depth, _ = synthetic_render.render(scene, reference)
   reference_selection = selection.shape_selection(reference, box, reference_depth)
   center, radius = reference_cameras.selection_sphere(np.asarray(box.corners))
   near, far = control_depth.selection_depth_range(reference, center, radius)

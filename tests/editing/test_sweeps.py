@@ -1,5 +1,6 @@
-"""editing.sweeps on the tiny scene with a random-weight model: the original NeRF is trained once
-and reused, an edit listed twice runs once, and a run is summarised as quality and time."""
+"""editing.commands.sweeps on the tiny scene with a random-weight model: the original NeRF is
+trained once and reused, an edit listed twice runs once, and a run is summarised as quality and
+time."""
 
 import math
 
@@ -7,7 +8,7 @@ import gin
 import pytest
 
 from signerf_jax import files
-from signerf_jax.editing import sweeps
+from signerf_jax.editing.commands import sweeps
 
 from test_pipeline import bindings
 

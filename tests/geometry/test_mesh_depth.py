@@ -95,7 +95,7 @@ def test_fisheye_rays_past_90_degrees_hit_nothing_and_the_others_match_trimesh()
   cosine = np.asarray(camera.image_rays(cameras, 0).cos_to_optical_axis)
   assert np.any(cosine < -0.5)
   assert not np.asarray(result.hit)[0][cosine <= 0].any()
-  in_front = cosine > 1e-3  # well clear of the clamp at camera.MAX_PLANE_ANGLE
+  in_front = cosine > 1e-3  # well clear of the clamp at lens.MAX_PLANE_ANGLE
   expected = trimesh_distance(proxy, cameras)[0]
   np.testing.assert_array_equal(np.asarray(result.hit)[0][in_front], True)
   np.testing.assert_allclose(np.asarray(result.distance)[0][in_front], expected[in_front],

@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ BOX = selection.Box.create([0.6, -0.4, 0.0], [1.2, 0.2, 0.5])  # off the scene c
 SELECTION = np.asarray(BOX.corners)
 CENTER = np.asarray(BOX.center)
 FOCAL = 150.0
+Z_UP = reference_cameras.ReferencePlacement(up=(0, 0, 1))
 
 
 def ring_cameras(azimuths_degrees, distance=4.0, elevation_degrees=25.0, target=None, size=64):
@@ -36,7 +39,7 @@ def circular_gaps(degrees):
 
 def test_full_circle_gives_evenly_spread_cameras_looking_at_the_selection():
   dataset = ring_cameras(np.arange(0, 360, 15))
-  cameras, report = reference_cameras.place_reference_cameras(dataset, SELECTION, up=(0, 0, 1))
+  cameras, report = reference_cameras.place_reference_cameras(dataset, SELECTION, placement=Z_UP)
   assert cameras.num_cameras == 5
   np.testing.assert_allclose(circular_gaps(azimuth_about_z(cameras)), 72.0, atol=1e-3)
   assert report.dataset_arc_degrees == pytest.approx(345.0)
@@ -53,7 +56,7 @@ def test_full_circle_gives_evenly_spread_cameras_looking_at_the_selection():
 def test_partial_arc_stays_inside_the_covered_arc():
   dataset = ring_cameras(np.linspace(-40, 50, 10))
   cameras, report = reference_cameras.place_reference_cameras(dataset, SELECTION, count=3,
-                                                              up=(0, 0, 1))
+                                                              placement=Z_UP)
   np.testing.assert_allclose(np.sort(azimuth_about_z(cameras)), [-25.0, 5.0, 35.0], atol=1e-3)
   assert report.dataset_arc_degrees == pytest.approx(90.0)
   assert report.reference_arc_degrees == pytest.approx(60.0, abs=1e-3)
@@ -65,7 +68,7 @@ def test_elevation_follows_the_nearby_dataset_cameras():
   dataset = camera.Cameras.create(
       np.concatenate([low.camera_to_world, high.camera_to_world]), fx=FOCAL, width=64, height=64)
   cameras, report = reference_cameras.place_reference_cameras(dataset, SELECTION, count=4,
-                                                              up=(0, 0, 1))
+                                                              placement=Z_UP)
   azimuth = np.mod(azimuth_about_z(cameras), 360)
   # Away from the two seams, all three nearest dataset cameras share one elevation.
   away_from_seams = np.minimum(np.abs(azimuth - 180), np.minimum(azimuth, 360 - azimuth)) > 20
@@ -79,7 +82,8 @@ def test_distant_dataset_cameras_are_brought_closer_and_near_ones_pushed_back():
   for distance, (min_fill, max_fill) in [(40.0, (0.25, 0.6)), (0.8, (0.25, 0.6))]:
     dataset = ring_cameras(np.arange(0, 360, 30), distance=distance)
     cameras, report = reference_cameras.place_reference_cameras(
-        dataset, SELECTION, up=(0, 0, 1), min_fill=min_fill, max_fill=max_fill)
+        dataset, SELECTION,
+        placement=dataclasses.replace(Z_UP, min_fill=min_fill, max_fill=max_fill))
     center, radius = reference_cameras.selection_sphere(SELECTION)
     # The bounding sphere's projected square covers min_fill (far) / max_fill (near) of the frame.
     half_angle = np.arcsin(radius / report.distance)
@@ -117,3 +121,14 @@ def test_report_is_json_friendly():
   _, report = reference_cameras.place_reference_cameras(dataset, SELECTION)
   summary = report.to_json()
   assert len(summary["fill_ratio"]) == 5 and isinstance(summary["dataset_arc_degrees"], float)
+
+
+@pytest.mark.parametrize("fields, field", [
+    ({"min_fill": 0.7, "max_fill": 0.6}, "ReferencePlacement.min_fill"),
+    ({"max_fill": 1.0}, "ReferencePlacement.min_fill"),
+    ({"neighbours": 0}, "ReferencePlacement.neighbours"),
+])
+def test_bad_placement_is_an_input_error_naming_the_field(fields, field):
+  with pytest.raises(InputError) as error:
+    reference_cameras.ReferencePlacement(**fields)
+  assert error.value.field == field

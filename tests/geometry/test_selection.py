@@ -1,5 +1,3 @@
-import itertools
-
 import numpy as np
 import pytest
 
@@ -113,39 +111,6 @@ def test_distance_and_z_depth_inputs_agree():
   from_distance = selection.shape_selection(cameras, box, z_depth / cosine, depth_kind="distance")
   np.testing.assert_array_equal(from_z.mask, from_distance.mask)
   np.testing.assert_allclose(from_z.control_depth, from_distance.control_depth, rtol=1e-6)
-
-
-DIRECTIONS = [np.array(d, np.float32) for d in itertools.product((-1.0, 0.0, 1.0), repeat=3)
-              if any(d)]
-
-
-@pytest.mark.parametrize("direction", DIRECTIONS, ids=lambda d: str(d.tolist()))
-@pytest.mark.parametrize("origin", [(0.1, 0.2, -0.3), (3.0, 0.2, -0.3), (3.0, 3.0, 3.0),
-                                    (1.0, 0.0, 0.0), (1.0, 1.0, 0.0)])
-def test_ray_box_interval_with_axis_parallel_rays(origin, direction):
-  # Box [-1, 1]^3; compare with dense sampling along the ray. Origins on the boundary (touching
-  # a face, an edge) make the "parallel to a slab, exactly on its boundary" case.
-  origin = np.asarray(origin, np.float32)
-  direction = direction / np.linalg.norm(direction)
-  entry, exit_, hits = selection.ray_box_interval(origin, direction, -np.ones(3), np.ones(3))
-  samples = np.linspace(0, 10, 100001)
-  points = origin + samples[:, None] * direction
-  inside = np.all(np.abs(points) <= 1 + 1e-6, -1)
-  assert bool(hits) == inside.any()
-  assert not np.isnan(entry) and not np.isnan(exit_)
-  if inside.any():
-    assert float(entry) == pytest.approx(samples[inside].min(), abs=2e-4)
-    assert float(exit_) == pytest.approx(samples[inside].max(), abs=2e-4)
-
-
-def test_grazing_ray_touches_the_box():
-  entry, exit_, hits = selection.ray_box_interval(np.array([-5.0, 1.0, 0.0]),
-                                                  np.array([1.0, 0.0, 0.0]), -np.ones(3),
-                                                  np.ones(3))
-  assert bool(hits) and float(entry) == 4.0 and float(exit_) == 6.0
-  _, _, misses = selection.ray_box_interval(np.array([-5.0, 1.0 + 1e-6, 0.0]),
-                                            np.array([1.0, 0.0, 0.0]), -np.ones(3), np.ones(3))
-  assert not bool(misses)
 
 
 def test_proxy_selection_composites_nearest_wins():

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from signerf_jax import camera
-from signerf_jax.data import synthetic
+from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import consistency
 
@@ -44,13 +44,13 @@ def image_sets():
   box = dataclasses.replace(base.objects[0], object_id=BOX_ID, shape="box",
                             object_to_world=synthetic.affine(0.35 * np.eye(3), [0, 0, 0.35]))
   scene = with_box_texture(dataclasses.replace(base, objects=(box,)), seed=1)
-  rig = synthetic.CameraRig(layout="forward_facing", num_views=NUM_VIEWS, image_size=128,
-                            arc_degrees=50, distance=2.2)
-  cameras = synthetic.make_cameras(rig, scene.scene_bounds)
-  original, _, object_ids = synthetic.render(scene, cameras)
-  consistent, _, _ = synthetic.render(with_box_texture(scene, seed=10), cameras)
+  rig = synthetic_render.CameraRig(layout="forward_facing", num_views=NUM_VIEWS, image_size=128,
+                                   arc_degrees=50, distance=2.2)
+  cameras = synthetic_render.make_cameras(rig, scene.scene_bounds)
+  original, _, object_ids = synthetic_render.render(scene, cameras)
+  consistent, _, _ = synthetic_render.render(with_box_texture(scene, seed=10), cameras)
   independent = np.concatenate([
-      synthetic.render(with_box_texture(scene, seed=10 + view), cameras.take([view]))[0]
+      synthetic_render.render(with_box_texture(scene, seed=10 + view), cameras.take([view]))[0]
       for view in range(NUM_VIEWS)])
   return {"cameras": cameras, "masks": object_ids == BOX_ID, "original": original,
           "consistent": consistent, "independent": independent}

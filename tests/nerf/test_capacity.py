@@ -56,11 +56,21 @@ def test_real_scenes_use_proposals_and_contract_only_when_unbounded(kind, contra
 
 
 def test_overrides_pin_fields_and_bad_footprint_is_an_input_error():
-  pinned = capacity.derive_capacity(LEGO_100, overrides={"finest_resolution": 2048,
-                                                         "log2_table_size": 19})
+  pinned = capacity.derive_capacity(LEGO_100, capacity.CapacityRules(overrides={
+      "finest_resolution": 2048, "log2_table_size": 19}))
   assert (pinned.finest_resolution, pinned.log2_table_size) == (2048, 19)
   with pytest.raises(InputError, match="pixel footprint"):
     capacity.derive_capacity(dataclasses.replace(LEGO_100, pixel_footprint=0.0))
+
+
+@pytest.mark.parametrize("fields, field", [
+    ({"overrides": {"finest_resolutoin": 64}}, "CapacityRules.overrides"),
+    ({"level_growth": 1.0}, "CapacityRules.level_growth"),
+])
+def test_bad_rules_are_input_errors_naming_the_field(fields, field):
+  with pytest.raises(InputError) as error:
+    capacity.CapacityRules(**fields)
+  assert error.value.field == field
 
 
 def test_json_round_trip():

@@ -19,7 +19,7 @@ from small_nerf import SMALL_CONFIG, count_compilations, small_model
 from signerf_jax import camera
 from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import capacity, evaluate, render, sampling, train, volume
+from signerf_jax.nerf import capacity, evaluate, render, sampling, train, training_run, volume
 from signerf_jax.nerf import model as nerf_model
 
 BACKGROUND = jnp.array([0.2, 0.4, 0.6])
@@ -99,14 +99,14 @@ RED = np.array([1.0, 0.0, 0.0], np.float32)
 def edited(sphere):
   """The original NeRF (briefly trained) and an edit region trained on red-sphere images."""
   model = small_model(sphere)
-  original = train.make_trainer(sphere, model=model, config=SMALL_CONFIG)
+  original = training_run.make_trainer(sphere, model=model, config=SMALL_CONFIG)
   original.run(until_step=60, progress=False)
   original_variables = jax.device_get(original.state.variables)
   red = dataclasses.replace(sphere, images=np.where(sphere.depths[..., None] > 0, RED,
                                                     sphere.images))
   region_model = dataclasses.replace(model, edit_region=REGION)
-  trainer = train.make_trainer(red, model=region_model, config=SMALL_CONFIG,
-                               init_variables={"original": original_variables})
+  trainer = training_run.make_trainer(red, model=region_model, config=SMALL_CONFIG,
+                                      init_variables={"original": original_variables})
   trainer.run(until_step=40, progress=False)
   return model, original_variables, trainer
 
@@ -149,7 +149,7 @@ def test_training_an_edit_region_compiles_once(sphere, edited):
 
 def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
   model, original_variables, trainer = edited
-  train.write_model_file(tmp_path, trainer.model, sphere)
+  training_run.write_model_file(tmp_path, trainer.model, sphere)
   trainer.save(tmp_path)
   loaded = evaluate.load_run(tmp_path)
   assert loaded.model == trainer.model and loaded.model.edit_region == REGION
@@ -157,17 +157,17 @@ def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
   np.testing.assert_array_equal(
       render.render_cameras(loaded.model, loaded.variables, cameras)["rgb"],
       render.render_cameras(trainer.model, trainer.state.variables, cameras)["rgb"])
-  description = json.loads((tmp_path / train.MODEL_FILE).read_text())
+  description = json.loads((tmp_path / training_run.MODEL_FILE).read_text())
   description["edit_region"] = [[0, 0, 0], [0, 1, 1]]
-  (tmp_path / train.MODEL_FILE).write_text(json.dumps(description))
+  (tmp_path / training_run.MODEL_FILE).write_text(json.dumps(description))
   with pytest.raises(InputError, match="model.json"):
-    train.read_model_file(tmp_path)
+    training_run.read_model_file(tmp_path)
 
 
 def test_the_proposal_sampler_keeps_rays_missing_the_region_too(sphere):
   dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
   scene = capacity.SceneInfo.from_dataset(dataset)
-  derived = capacity.derive_capacity(scene, samples_per_batch=4096)
+  derived = capacity.derive_capacity(scene, capacity.CapacityRules(samples_per_batch=4096))
   model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
                                                           samples_per_ray=8, mlp_width=32))
   variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))

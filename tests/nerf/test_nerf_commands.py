@@ -6,8 +6,8 @@ import pytest
 from signerf_jax import cli, files
 from signerf_jax.data import write_nerfstudio
 
-GIN_PARAMS = ["--gin_param", "derive_capacity.rays_per_batch = 512",
-              "--gin_param", "derive_capacity.samples_per_batch = 4096",
+GIN_PARAMS = ["--gin_param", "CapacityRules.rays_per_batch = 512",
+              "--gin_param", "CapacityRules.samples_per_batch = 4096",
               "--gin_param", "TrainConfig.occupancy_warmup_steps = 4",
               "--gin_param", "TrainConfig.occupancy_update_every = 4"]
 
@@ -25,7 +25,7 @@ def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
                    *GIN_PARAMS]) == 0
   assert "6 steps" in capsys.readouterr().out
   config = (run / "config.gin").read_text()
-  assert "derive_capacity.samples_per_batch = 4096" in config and "TrainConfig" in config
+  assert "CapacityRules.samples_per_batch = 4096" in config and "TrainConfig" in config
   # Resuming with more steps continues from the checkpoint with the run's own configuration.
   assert cli.main(["train", "--data", str(scene_dir), "--out", str(run), "--steps", "9"]) == 0
   assert "9 steps" in capsys.readouterr().out

@@ -17,7 +17,7 @@ from small_nerf import SMALL_CONFIG, count_compilations, small_model
 from signerf_jax import camera, parallel
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
-from signerf_jax.nerf import train
+from signerf_jax.nerf import training_run
 
 STEPS = 8
 # Occupancy refreshes at steps 4 and 8: the grid update runs on the mesh too.
@@ -34,7 +34,7 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
     sys.path.insert(0, tests)
     from signerf_jax import parallel
     from signerf_jax.errors import InputError
-    from signerf_jax.nerf import train
+    from signerf_jax.nerf import train, training_run
     from analytic_scene import sphere_dataset
     from small_nerf import count_compilations, small_model
     from test_nerf_parallel import CONFIG, STEPS
@@ -44,7 +44,7 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
     results = {}
     for count in (1, 2):
       mesh = parallel.device_mesh(jax.devices()[:count])
-      trainer = train.make_trainer(sphere, model=model, config=CONFIG, mesh=mesh)
+      trainer = training_run.make_trainer(sphere, model=model, config=CONFIG, mesh=mesh)
       losses = [trainer.run(until_step=step, progress=False)["loss"]
                 for step in range(1, STEPS + 1)]
       leaves = jax.tree.leaves(trainer.state.variables)
@@ -61,7 +61,8 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
                    all_gathers=program.count("all-gather("))
     odd = dataclasses.replace(model.capacity, rays_per_batch=1001)
     try:
-      train.make_trainer(sphere, model=dataclasses.replace(model, capacity=odd), config=CONFIG)
+      training_run.make_trainer(sphere, model=dataclasses.replace(model, capacity=odd),
+                                config=CONFIG)
     except InputError as error:
       results["odd_batch_field"] = error.field
     np.savez(output, **results)
@@ -122,11 +123,11 @@ def test_a_sample_group_renders_the_same_whatever_the_other_groups_hold(sphere):
 def test_a_resumed_run_is_placed_on_the_mesh_and_compiles_nothing(sphere, tmp_path):
   model = small_model(sphere)
   config = dataclasses.replace(CONFIG, steps=3)
-  first = train.make_trainer(sphere, model=model, config=config)
-  train.write_model_file(tmp_path, model, sphere)
+  first = training_run.make_trainer(sphere, model=model, config=config)
+  training_run.write_model_file(tmp_path, model, sphere)
   first.run(until_step=2, run_dir=tmp_path, progress=False)
   with count_compilations() as compiled:
-    resumed = train.train(sphere, tmp_path, model=model, config=config, progress=False)
+    resumed = training_run.train(sphere, tmp_path, model=model, config=config, progress=False)
   assert resumed.step == 3 and compiled == []
 
 
@@ -134,7 +135,7 @@ def test_sample_groups_must_split_the_batch(sphere):
   model = small_model(sphere)
   model = dataclasses.replace(model, capacity=dataclasses.replace(model.capacity,
                                                                   sample_groups=3))
-  trainer = train.make_trainer(sphere, model=model, config=CONFIG)
+  trainer = training_run.make_trainer(sphere, model=model, config=CONFIG)
   with pytest.raises(InputError) as error:
     trainer.run(until_step=1, progress=False)
   assert error.value.field == "Capacity.sample_groups"

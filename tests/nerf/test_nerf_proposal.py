@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from small_nerf import SMALL_CONFIG, count_compilations
 
-from signerf_jax.nerf import capacity, evaluate, model as nerf_model, train
+from signerf_jax.nerf import capacity, evaluate, training_run, model as nerf_model
 
 
 @pytest.mark.parametrize("kind", ["unbounded", "forward_facing"])
@@ -17,12 +17,12 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
   views = sphere if kind == "unbounded" else sphere.subset([14, 15, 0, 1, 2])
   dataset = dataclasses.replace(views, scene_kind=kind, background_color=None)
   scene = capacity.SceneInfo.from_dataset(dataset)
-  derived = capacity.derive_capacity(scene, samples_per_batch=4096)
+  derived = capacity.derive_capacity(scene, capacity.CapacityRules(samples_per_batch=4096))
   model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
                                                           samples_per_ray=8, mlp_width=32))
   assert model.capacity.sampler == "proposal" and model.capacity.contract == (kind == "unbounded")
   assert model.capacity.perspective_warp == (kind == "forward_facing")
-  trainer = train.make_trainer(dataset, model=model, config=SMALL_CONFIG)
+  trainer = training_run.make_trainer(dataset, model=model, config=SMALL_CONFIG)
   initial = jax.device_get(trainer.state.variables["params"])
   before, _ = evaluate.evaluate(model, trainer.state.variables, dataset.subset([0]))
   trainer.run(until_step=2, progress=False)

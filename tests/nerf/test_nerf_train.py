@@ -5,14 +5,16 @@ import numpy as np
 import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
-from signerf_jax.nerf import checkpoint, evaluate, render, train
+from signerf_jax import checkpoints
+from signerf_jax.nerf import evaluate, render, train, training_run
+from signerf_jax.training_loop import TrainingDiverged
 
 
 @pytest.fixture(scope="module")
 def trained(sphere, tmp_path_factory):
   """A small model trained briefly on the sphere, with its PSNR before training."""
   model = small_model(sphere)
-  trainer = train.make_trainer(sphere, model=model, config=SMALL_CONFIG)
+  trainer = training_run.make_trainer(sphere, model=model, config=SMALL_CONFIG)
   before, _ = evaluate.evaluate(model, trainer.state.variables, sphere.subset([0, 5]))
   trainer.run(until_step=120, progress=False)
   return trainer, before
@@ -48,13 +50,13 @@ def test_second_training_step_and_second_render_compile_nothing(sphere, trained)
 def test_resumed_run_equals_uninterrupted_run(sphere, tmp_path):
   model = small_model(sphere)
   config = dataclasses.replace(SMALL_CONFIG, steps=10)
-  uninterrupted = train.train(sphere, tmp_path / "whole", model=model, config=config,
-                              progress=False)
+  uninterrupted = training_run.train(sphere, tmp_path / "whole", model=model, config=config,
+                                     progress=False)
   # The first half stops at step 5 of the same 10-step run (same learning-rate schedule).
-  first_half = train.make_trainer(sphere, model=model, config=config)
-  train.write_model_file(tmp_path / "split", model, sphere)
+  first_half = training_run.make_trainer(sphere, model=model, config=config)
+  training_run.write_model_file(tmp_path / "split", model, sphere)
   first_half.run(until_step=5, run_dir=tmp_path / "split", progress=False)
-  resumed = train.train(sphere, tmp_path / "split", config=config, progress=False)
+  resumed = training_run.train(sphere, tmp_path / "split", config=config, progress=False)
   assert resumed.step == uninterrupted.step == 10
   whole_leaves = jax.tree.leaves(uninterrupted.state)
   split_leaves = jax.tree.leaves(resumed.state)
@@ -66,7 +68,7 @@ def test_resumed_run_equals_uninterrupted_run(sphere, tmp_path):
 def test_interrupted_run_keeps_its_last_checkpoint(sphere, tmp_path):
   model = small_model(sphere)
   config = dataclasses.replace(SMALL_CONFIG, steps=10, checkpoint_every_steps=3)
-  trainer = train.make_trainer(sphere, model=model, config=config)
+  trainer = training_run.make_trainer(sphere, model=model, config=config)
   step_fn = trainer._step_fn
 
   def failing_step(state, data, progress):
@@ -75,10 +77,10 @@ def test_interrupted_run_keeps_its_last_checkpoint(sphere, tmp_path):
     return step_fn(state, data, progress)
 
   trainer._step_fn = failing_step
-  train.write_model_file(tmp_path, model, sphere)
+  training_run.write_model_file(tmp_path, model, sphere)
   with pytest.raises(KeyboardInterrupt):
     trainer.run(run_dir=tmp_path, progress=False)
-  restored, metadata = checkpoint.restore(tmp_path, train.init_state(model, config))
+  restored, metadata = checkpoints.restore(tmp_path, train.init_state(model, config))
   assert int(restored.step) == metadata["step"] == 6
   assert not list(tmp_path.glob(".checkpoint*"))  # no temporary file left behind
 
@@ -87,17 +89,19 @@ def test_fine_tuning_starts_from_given_variables_and_honours_pixel_weights(spher
                                                                            tmp_path):
   trainer, _ = trained
   variables = jax.device_get(trainer.state.variables)
-  ignored = train.train(sphere, tmp_path / "ignored", init_variables=variables,
-                        model=trainer.model, config=SMALL_CONFIG, steps=3,
-                        pixel_weights=np.zeros(sphere.images.shape[:3]), progress=False)
+  ignored = training_run.train(sphere, tmp_path / "ignored", init_variables=variables,
+                               model=trainer.model, config=SMALL_CONFIG, steps=3,
+                               pixel_weights=np.zeros(sphere.images.shape[:3]),
+                               progress=False)
   for before, after in zip(jax.tree.leaves(variables["params"]),
                            jax.tree.leaves(ignored.state.variables["params"])):
     np.testing.assert_array_equal(before, after)
   # The old occupancy grid is dropped: edits may add content where the scene was empty.
   assert np.any(variables["occupancy"] >= 0)
   assert np.all(np.asarray(ignored.state.variables["occupancy"]) < 0)
-  weighted = train.train(sphere, tmp_path / "weighted", init_variables=variables,
-                         model=trainer.model, config=SMALL_CONFIG, steps=3, progress=False)
+  weighted = training_run.train(sphere, tmp_path / "weighted", init_variables=variables,
+                                model=trainer.model, config=SMALL_CONFIG, steps=3,
+                                progress=False)
   changed = [not np.array_equal(before, after) for before, after in zip(
       jax.tree.leaves(variables["params"]), jax.tree.leaves(weighted.state.variables["params"]))]
   assert all(changed)
@@ -120,7 +124,7 @@ def test_a_time_budget_is_what_the_schedule_spans(sphere):
   """With max_seconds, progress is the larger of the steps and the seconds fractions, so a run
   stopped by its time budget ends annealed although it did few of its steps."""
   config = dataclasses.replace(SMALL_CONFIG, steps=1_000_000, max_seconds=3.0)
-  trainer = train.make_trainer(sphere, model=small_model(sphere), config=config)
+  trainer = training_run.make_trainer(sphere, model=small_model(sphere), config=config)
   trainer.seconds_trained = 1.5
   assert trainer.progress == pytest.approx(0.5)
   trainer.seconds_trained = 0.0
@@ -131,3 +135,18 @@ def test_a_time_budget_is_what_the_schedule_spans(sphere):
   final = config.final_learning_rate
   assert final <= statistics["learning_rate"] <= final * (config.learning_rate / final)**(
       2 * (trainer.seconds_trained / trainer.step) / 3.0)
+
+
+def test_a_diverged_run_stops_and_keeps_its_last_good_checkpoint(sphere, tmp_path):
+  model = small_model(sphere)
+  config = dataclasses.replace(SMALL_CONFIG, steps=20, checkpoint_every_steps=1)
+  trainer = training_run.make_trainer(sphere, model=model, config=config)
+  trainer.run(until_step=3, run_dir=tmp_path, progress=False)
+  # NaN targets make the loss NaN from the next step on.
+  trainer.data = trainer.data.replace(images=trainer.data.images * np.float32("nan"))
+  with pytest.raises(TrainingDiverged, match="after step 4.*learning_rate") as error:
+    trainer.run(until_step=10, run_dir=tmp_path, progress=False)
+  assert error.value.path == str(tmp_path)
+  state, metadata = checkpoints.restore(tmp_path, trainer.state)
+  assert metadata["step"] == int(state.step) == 3
+  assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(state.variables["params"]))

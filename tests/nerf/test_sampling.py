@@ -1,3 +1,5 @@
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,6 +33,47 @@ def test_intersect_aabb_is_finite_and_exact(origin, direction, expected):
   else:
     assert bool(hit)
     np.testing.assert_allclose([t_near, t_far], expected, rtol=1e-5, atol=1e-5)
+
+
+DIRECTIONS = [np.array(d, np.float32) for d in itertools.product((-1.0, 0.0, 1.0), repeat=3)
+              if any(d)]
+
+
+@pytest.mark.parametrize("direction", DIRECTIONS, ids=lambda d: str(d.tolist()))
+@pytest.mark.parametrize("origin", [(0.1, 0.2, -0.3), (3.0, 0.2, -0.3), (3.0, 3.0, 3.0),
+                                    (1.0, 0.0, 0.0), (1.0, 1.0, 0.0)])
+def test_the_closed_box_interval_with_axis_parallel_rays(origin, direction):
+  # Box [-1, 1]^3; compare with dense sampling along the ray. Origins on the boundary (touching
+  # a face, an edge) make the "parallel to a slab, exactly on its boundary" case.
+  origin = np.asarray(origin, np.float32)
+  direction = direction / np.linalg.norm(direction)
+  entry, exit_, hits = sampling.ray_box_interval(origin, direction, -np.ones(3), np.ones(3))
+  samples = np.linspace(0, 10, 100001)
+  points = origin + samples[:, None] * direction
+  inside = np.all(np.abs(points) <= 1 + 1e-6, -1)
+  assert bool(hits) == inside.any()
+  assert not np.isnan(entry) and not np.isnan(exit_)
+  if inside.any():
+    assert float(entry) == pytest.approx(samples[inside].min(), abs=2e-4)
+    assert float(exit_) == pytest.approx(samples[inside].max(), abs=2e-4)
+
+
+@pytest.mark.parametrize("closed", [True, False], ids=["closed", "open"])
+def test_a_grazing_ray_touches_only_the_closed_box(closed):
+  """Selections count a ray along a face as meeting the box; volume sampling does not (no
+  interior to sample). Both are the same slab test."""
+  direction = np.array([1.0, 0.0, 0.0])
+  along_face = sampling.ray_box_interval(np.array([-5.0, 1.0, 0.0]), direction, -np.ones(3),
+                                         np.ones(3), closed)
+  touching_an_edge = sampling.ray_box_interval(np.array([-5.0, -3.0, 0.0]),
+                                               np.array([1.0, 1.0, 0.0]), -np.ones(3),
+                                               np.ones(3), closed)
+  assert bool(along_face[2]) == bool(touching_an_edge[2]) == closed
+  if closed:
+    assert float(along_face[0]) == 4.0 and float(along_face[1]) == 6.0
+  _, _, misses = sampling.ray_box_interval(np.array([-5.0, 1.0 + 1e-6, 0.0]), direction,
+                                           -np.ones(3), np.ones(3), closed)
+  assert not bool(misses)
 
 
 def test_stratified_and_marching_edges_stay_sorted_inside_the_range():

@@ -1,6 +1,7 @@
-"""The edit's `signerf` subcommands (one module each; shared flags and helpers here): `edit` runs
-the whole pipeline; `preview`, `update` and `finetune` run it up to their stage (earlier stages
-run first if needed, finished ones are skipped); `eval --edit` evaluates.
+"""The edit's `signerf` subcommands (shared flags and helpers here): `edit` runs the whole
+pipeline; `preview`, `update` and `finetune` run it up to their stage (earlier stages run first
+if needed, finished ones are skipped); `eval --edit` evaluates. This is where gin meets the
+editing code: `edit_settings` builds the `EditSettings` every stage reads from the bindings.
 
 The flags describing the edit (--data, --prompt, --box / --proxy, --model, ...) are shorthand for
 gin bindings of `editing.config` and are needed only when the edit directory is created: they
@@ -20,10 +21,20 @@ import json
 import time
 from pathlib import Path
 
+import gin
+
 from signerf_jax import configs
-from signerf_jax.data import synthetic  # noqa: F401  (its gin bindings may be in config.gin)
-from signerf_jax.editing import pipeline
+from signerf_jax.diffusion.attention import AttentionOptions
+from signerf_jax.diffusion.pipeline import GenerationOptions
+from signerf_jax.editing import stages
+from signerf_jax.editing.config import (TRAINING_RUNS, EditConfig, EditSettings,
+                                        EvaluationConfig, FinetuneConfig, PreviewConfig,
+                                        SelectionConfig, SheetConfig, UpdateConfig)
 from signerf_jax.errors import InputError
+from signerf_jax.geometry.reference_cameras import ReferencePlacement
+from signerf_jax.metrics.consistency import ConsistencySettings
+from signerf_jax.nerf.capacity import CapacityRules
+from signerf_jax.nerf.train import TrainConfig
 
 # command -> the stage it runs up to.
 LAST_STAGE = {"edit": "evaluate", "preview": "preview", "update": "dataset",
@@ -91,16 +102,20 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+def _absolute_path(value: str) -> str:
+  return str(Path(value).resolve())
+
+
 # flag -> (gin binding, how to turn the flag's value into the bound value).
 _FLAG_BINDINGS = {
-    "data": ("EditConfig.data", lambda value: str(Path(value).resolve())),
+    "data": ("EditConfig.data", _absolute_path),
     "downscale": ("EditConfig.downscale", None),
-    "run": ("EditConfig.original_run", lambda value: str(Path(value).resolve())),
+    "run": ("EditConfig.original_run", _absolute_path),
     "prompt": ("EditConfig.prompt", None),
     "negative_prompt": ("EditConfig.negative_prompt", None),
     "seed": ("EditConfig.seed", None),
-    "model": ("EditConfig.model", lambda value: str(Path(value).resolve())),
-    "controlnet": ("EditConfig.controlnet", lambda value: str(Path(value).resolve())),
+    "model": ("EditConfig.model", _absolute_path),
+    "controlnet": ("EditConfig.controlnet", _absolute_path),
     "scheduler": ("EditConfig.scheduler_kind", None),
     "sheet": ("EditConfig.sheet", None),
     "nerf_update": ("EditConfig.nerf_update", None),
@@ -112,8 +127,8 @@ _FLAG_BINDINGS = {
     "size": ("SelectionConfig.ground_size", None),
     "heading": ("SelectionConfig.heading_degrees", None),
     "up": ("SelectionConfig.up", None),
-    "lpips": ("FinetuneConfig.lpips_weights", lambda value: str(Path(value).resolve())),
-    "clip": ("EvaluationConfig.clip_model", lambda value: str(Path(value).resolve())),
+    "lpips": ("FinetuneConfig.lpips_weights", _absolute_path),
+    "clip": ("EvaluationConfig.clip_model", _absolute_path),
     "views_per_device": ("UpdateConfig.views_per_device", None),
 }
 
@@ -143,16 +158,35 @@ def parse_edit_config(directory: str | Path, gin_files, bindings) -> None:
   configs.parse_gin(([saved] if saved.is_file() else []) + list(gin_files), list(bindings))
 
 
+def edit_settings() -> EditSettings:
+  """The edit's settings from the current gin bindings (`configs.parse_gin` first)."""
+  return EditSettings(
+      edit=configs.build(EditConfig), selection=configs.build(SelectionConfig),
+      sheet=configs.build(SheetConfig), preview=configs.build(PreviewConfig),
+      update=configs.build(UpdateConfig), finetune=configs.build(FinetuneConfig),
+      evaluation=configs.build(EvaluationConfig),
+      generation=(configs.build(GenerationOptions, "first_iteration"),
+                  configs.build(GenerationOptions, "second_iteration")),
+      training={run: configs.build(TrainConfig, run) for run in TRAINING_RUNS},
+      capacity=configs.build(CapacityRules), placement=configs.build(ReferencePlacement),
+      attention=configs.build(AttentionOptions),
+      consistency=configs.build(ConsistencySettings), gin_config=gin.config_str())
+
+
 def run_command(name: str, directory: str | Path, redo=(), progress: bool = True
-                ) -> pipeline.EditRun:
-  """Runs the pipeline up to the command's stage, each stage's lines prefixed `signerf NAME`."""
-  return pipeline.run_edit(directory, until=LAST_STAGE[name], redo=tuple(redo),
-                           progress=progress, log=lambda line: print(f"signerf {name} {line}",
-                                                                     flush=True))
+                ) -> stages.EditContext:
+  """Runs the pipeline up to the command's stage with the current gin bindings (saved as
+  `directory`/config.gin first, which later commands read back), each stage's lines prefixed
+  `signerf NAME`."""
+  settings = edit_settings()
+  configs.save_gin_config(directory)
+  return stages.run_edit(directory, settings, until=LAST_STAGE[name], redo=tuple(redo),
+                         progress=progress, log=lambda line: print(f"signerf {name} {line}",
+                                                                   flush=True))
 
 
 def run_stages(name: str, args: argparse.Namespace, extra_bindings=()
-               ) -> tuple[pipeline.EditRun, float]:
+               ) -> tuple[stages.EditContext, float]:
   """Parses the edit's gin (saved config, files, flags, parameters) and runs the command's
   stages. Returns the run and its wall time in seconds."""
   start = time.perf_counter()

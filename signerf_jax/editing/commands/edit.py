@@ -1,4 +1,6 @@
-"""`signerf edit`: the whole SIGNeRF pipeline, from the original NeRF to the evaluation."""
+"""`signerf edit`, `signerf update` and `signerf finetune`: the SIGNeRF pipeline up to the
+command's last stage (`LAST_STAGE`: evaluate, dataset, finetune), earlier stages first when
+they have not run."""
 
 from __future__ import annotations
 
@@ -12,11 +14,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-  edit, seconds = run_stages("edit", args)
-  final = 2 if edit.config.second_iteration else 1
+  edit, seconds = run_stages(args.command, args)
+  final = 2 if edit.settings.edit.second_iteration else 1
   path = edit.directory.path
-  print(f"signerf edit: done in {seconds:.0f} s; sheet "
-        f"{path('sheet', 'sheet.png', iteration=final)}, edited dataset "
-        f"{path('dataset', iteration=final)}, edited NeRF {path('edited', iteration=final)}, "
-        f"metrics {path('evaluation', 'metrics.json')}")
+  dataset = f"edited dataset {path('dataset', iteration=final)}"
+  nerf = f"edited NeRF {path('edited', iteration=final)}"
+  outputs = {
+      "edit": (f"sheet {path('sheet', 'sheet.png', iteration=final)}, {dataset}, {nerf}, "
+               f"metrics {path('evaluation', 'metrics.json')}"),
+      "update": f"edited views {path('update', 'images', iteration=final)}, {dataset}",
+      "finetune": nerf,
+  }[args.command]
+  print(f"signerf {args.command}: done in {seconds:.0f} s; {outputs}")
   return 0

@@ -7,18 +7,15 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-import gin
-
 from signerf_jax.data import Dataset, load_dataset
 from signerf_jax.errors import InputError
 
 
-@gin.configurable
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-  """How a dataset is read: the options of `data.load_dataset` besides the split (each has a
-  command-line flag of the same name, which wins over gin). A run records them in model.json,
-  so its held-out split loads in the same frame.
+  """How a dataset is read: the options of `data.load_dataset` besides the split (gin:
+  `DataConfig.<field>`; each has a command-line flag of the same name, which wins over gin). A
+  run records them in model.json, so its held-out split loads in the same frame.
 
   Attributes:
     downscale: integer image downscale.
@@ -38,7 +35,7 @@ class DataConfig:
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
-  """Flags for every `DataConfig` field (default: the gin-configured value)."""
+  """Flags for every `DataConfig` field (default: the gin-bound value)."""
   parser.add_argument("--downscale", type=int, default=None, help="integer image downscale")
   parser.add_argument("--eval_every", type=int, default=None,
                       help="hold out every N-th view (default: the dataset's own split, else 8)")
@@ -65,10 +62,9 @@ def _held_out_names(value: str) -> tuple[str, ...]:
   return tuple(line.strip() for line in lines if line.strip())
 
 
-def data_options(args: argparse.Namespace) -> dict[str, Any]:
-  """`load_dataset`'s options (JSON-friendly): the gin `DataConfig` with the given flags on top,
-  and the dataset's absolute root."""
-  config = DataConfig()
+def data_options(args: argparse.Namespace, config: DataConfig) -> dict[str, Any]:
+  """`load_dataset`'s options (JSON-friendly): `config` (the gin-bound one) with the given flags
+  on top, and the dataset's absolute root."""
   flags = {name: getattr(args, name) for name in ("downscale", "eval_every", "scene_kind",
                                                   "scene_radius")
            if getattr(args, name, None) is not None}

@@ -1,5 +1,5 @@
 """`signerf train`: train (or resume) a NeRF on a dataset, then evaluate it on its held-out
-views."""
+views. The run directory gets the gin bindings as config.gin, which a resume reads back."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from signerf_jax import configs
+from signerf_jax import checkpoints, configs
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import load_dataset
-from signerf_jax.nerf import capacity, checkpoint, train
-from signerf_jax.nerf.commands import add_data_arguments, data_options
+from signerf_jax.nerf import capacity, train, training_run
+from signerf_jax.nerf.commands import DataConfig, add_data_arguments, data_options
 from signerf_jax.nerf.commands import evaluate as evaluate_command
 
 
@@ -33,20 +33,23 @@ def run(args: argparse.Namespace) -> int:
   saved_config = run_dir / configs.SAVED_CONFIG_NAME
   gin_files = args.gin_file
   # Resuming without new gin files continues with the run's own configuration.
-  if not gin_files and checkpoint.has_checkpoint(run_dir) and saved_config.is_file():
+  if not gin_files and checkpoints.has_checkpoint(run_dir) and saved_config.is_file():
     gin_files = [saved_config]
   configs.parse_gin(gin_files, args.gin_param)
-  options = data_options(args)
+  options = data_options(args, configs.build(DataConfig))
   loading = {name: value for name, value in options.items() if name != "root"}
   loading["held_out"] = tuple(loading["held_out"])
   dataset = load_dataset(options["root"], split="train", **loading)
-  model = (train.read_model_file(run_dir)[0] if checkpoint.has_checkpoint(run_dir)
-           else train.build_model(dataset))
+  model = (training_run.read_model_file(run_dir)[0] if checkpoints.has_checkpoint(run_dir)
+           else training_run.build_model(dataset, rules=configs.build(capacity.CapacityRules)))
   print(f"signerf train: {dataset.num_images} training views of {dataset.width}x"
         f"{dataset.height} px; {frame_lib.summary_line(dataset.frame)}\n"
         f"signerf train: {capacity.describe(model.capacity)}", file=sys.stderr)
-  trainer = train.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
-                        model=model, data_options=options)
+  run_dir.mkdir(parents=True, exist_ok=True)
+  configs.save_gin_config(run_dir)
+  trainer = training_run.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
+                               model=model, config=configs.build(train.TrainConfig),
+                               data_options=options)
   statistics = trainer.last_statistics
   message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
              f"last batch {statistics.get('psnr', float('nan')):.2f} dB")

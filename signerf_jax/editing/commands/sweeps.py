@@ -3,8 +3,8 @@
 A `Sweep` holds common gin settings (files, then bindings). It trains the original NeRF once
 (`train_original`) and every variant then reuses it (`EditConfig.original_run`), so a variant
 costs only its edit. Each variant is an edit run in its own directory with its own bindings on
-top; variants with the same pipeline key (`pipeline.EditRun.key`: every setting any stage
-reads) are run once, whichever ablation lists them. JAX's compilation caches are cleared before
+top; variants with the same pipeline key (`stages.edit_key`: every setting any stage reads)
+are run once, whichever ablation lists them. JAX's compilation caches are cleared before
 each run so that every variant pays for its own compilation, as a fresh `signerf edit` would.
 
 `summarize_edit` reduces an edit to its headline quality numbers (`edit_quality`, from the
@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 import jax
 
 from signerf_jax import configs, files
-from signerf_jax.editing import pipeline
+from signerf_jax.editing import commands, stages
 from signerf_jax.editing.project import canonical_json
 
 # Stages not counted in an edit's time: trained once for all variants, and measuring only.
@@ -81,7 +81,7 @@ def edit_quality(metrics: dict[str, Any]) -> dict[str, float | None]:
   }
 
 
-def summarize_edit(edit: pipeline.EditRun) -> dict[str, Any]:
+def summarize_edit(edit: stages.EditContext) -> dict[str, Any]:
   """A finished edit's quality (`edit_quality`) and times in seconds.
 
   Returns:
@@ -117,7 +117,7 @@ class Sweep:
     root: holds original/ (the shared NeRF's edit directory) and the runs, GROUP/VARIANT/.
     gin_files, bindings: the common settings, parsed before each variant's bindings (after
       `train_original`, the bindings name the trained NeRF).
-    progress, log: as `pipeline.run_edit`'s; log lines are prefixed with the variant.
+    progress, log: as `stages.run_edit`'s; log lines are prefixed with the variant.
   """
 
   def __init__(self, root: str | Path, gin_files: Sequence[str], bindings: Sequence[str],
@@ -134,8 +134,11 @@ class Sweep:
     uses it. Returns {"run": its run directory, "seconds": the stage's wall time}."""
     configs.parse_gin(self.gin_files, self.bindings)
     directory = self.root / "original"
-    edit = pipeline.run_edit(directory, until="original", progress=self.progress,
-                             log=lambda line: self.log(f"original NeRF {line}"))
+    settings = commands.edit_settings()
+    configs.save_gin_config(directory)
+    edit = stages.run_edit(directory, settings, until="original",
+                           progress=self.progress,
+                           log=lambda line: self.log(f"original NeRF {line}"))
     run_dir = edit.original_run_dir.resolve()
     self.bindings.append(f"EditConfig.original_run = {str(run_dir)!r}")
     return {"run": str(run_dir), "seconds": edit.directory.stage_seconds()["original"]}
@@ -146,14 +149,16 @@ class Sweep:
     the directory of the earlier run it shares, if any."""
     configs.parse_gin(self.gin_files, self.bindings + list(variant.bindings))
     directory = self.root / group / variant.name
-    key = canonical_json(pipeline.EditRun(directory, self.progress).key("evaluate"))
+    settings = commands.edit_settings()
+    key = canonical_json(stages.edit_key(directory, settings))
     result = {"name": variant.name, "bindings": list(variant.bindings)}
     if key in self._summaries:
       earlier = self._summaries[key]
       self.log(f"{group}/{variant.name}: the same edit as {earlier['directory']}")
       return {**result, **earlier, "same_as": earlier["directory"]}
     jax.clear_caches()
-    edit = pipeline.run_edit(directory, progress=self.progress,
-                             log=lambda line: self.log(f"{group}/{variant.name} {line}"))
+    configs.save_gin_config(directory)
+    edit = stages.run_edit(directory, settings, progress=self.progress,
+                           log=lambda line: self.log(f"{group}/{variant.name} {line}"))
     self._summaries[key] = summarize_edit(edit)
     return {**result, **self._summaries[key]}

@@ -1,0 +1,162 @@
+"""The evaluate stage: what the edit did, measured and shown.
+
+  background     the paper's PSNR/SSIM between original and edited NeRF renders outside the
+                 selection, at held-out cameras;
+  adherence      whether the edited images and renders show the prompt's colour, and (proxy
+                 selections) the proxy's silhouette;
+  consistency    camera-verified correspondences of the sheet-propagated edit against
+                 independent per-view edits (same prompt, settings and seed for every view, as
+                 the paper's comparison), with the independent edits' cost;
+  CLIP           directional similarity (when CLIP weights are given);
+  figures        before/after renders, the sheet, the independent edits, an orbit video.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from signerf_jax import files
+from signerf_jax.clip import similarity as clip_similarity
+from signerf_jax.editing import conditioning as conditioning_lib
+from signerf_jax.editing import evaluation, figures, generation
+from signerf_jax.editing import update as update_lib
+from signerf_jax.editing.config import as_json
+from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
+from signerf_jax.editing.stages.propagation import edited_images
+from signerf_jax.metrics import background
+from signerf_jax.nerf import render
+
+BEFORE_AFTER_VIEWS = 4
+# Columns of the independent-edits figure.
+FIGURE_VIEWS = 6
+
+
+def evaluation_settings(context: EditContext) -> dict[str, Any]:
+  return {"evaluation": as_json(context.settings.evaluation),
+          "consistency": as_json(context.settings.consistency),
+          "generation": context.generation_key(1)}
+
+
+def _evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
+  if count >= len(indices):
+    return indices
+  return indices[np.round(np.linspace(0, len(indices) - 1, count)).astype(int)]
+
+
+def _held_out_conditioning(context: EditContext, nerf) -> conditioning_lib.Conditioning:
+  """The original NeRF's renders, selections and masks at the held-out cameras."""
+  cameras = context.eval_cameras
+  chunks = np.array_split(np.arange(cameras.num_cameras),
+                          -(-cameras.num_cameras // VIEWS_PER_CHUNK))
+  return conditioning_lib.Conditioning.stack_chunks([
+      conditioning_lib.condition_views(nerf.model, nerf.variables, cameras, chunk,
+                                       context.selection, context.settings.selection,
+                                       VIEWS_PER_CHUNK) for chunk in chunks])
+
+
+def _adherence(context: EditContext, originals, edited, conditioned, before, after
+               ) -> dict[str, Any]:
+  """Prompt colour (and proxy shape) adherence of the image set and the NeRF renders."""
+  prompt = context.settings.edit.prompt
+  metrics = {"prompt_color_adherence": {
+      "image_set": evaluation.prompt_color_adherence(prompt, edited, conditioned.selected),
+      "nerf_renders": evaluation.prompt_color_adherence(prompt, after, before.selected)}}
+  if context.selection.kind == "proxy":
+    metrics["shape_iou"] = {
+        "image_set": evaluation.shape_adherence(originals, edited, conditioned.selected,
+                                                conditioned.mask),
+        "nerf_renders": evaluation.shape_adherence(before.render, after, before.selected,
+                                                   before.mask)}
+  return metrics
+
+
+def _consistency(context: EditContext, visible, originals, edited, conditioned
+                 ) -> dict[str, Any]:
+  """Independent per-view edits of some edited views, against the sheet-propagated ones."""
+  dataset = context.dataset
+  chosen = _evenly_spaced(np.arange(len(visible)), context.settings.evaluation.independent_views)
+  views = update_lib.SlotViews(originals[chosen], conditioned.mask[chosen],
+                               conditioned.control[chosen],
+                               context.tile_boxes(dataset.cameras)[visible[chosen]])
+  keys = np.repeat(generation.seed_key(context.settings.edit.seed)[None], len(chosen), axis=0)
+  start = time.perf_counter()
+  independent = evaluation.independent_edits(context.generator(1), context.layout, views, keys)
+  seconds = time.perf_counter() - start
+  consistency = evaluation.consistency_comparison(
+      {"original": views.images, "sheet_propagated": edited[chosen], "independent": independent},
+      dataset.cameras.take(visible[chosen]), conditioned.mask[chosen] > 0,
+      context.settings.consistency)
+  shown = min(FIGURE_VIEWS, len(chosen))
+  files.write_image(context.directory.path("evaluation", "independent_edits.png"),
+                    figures.image_grid([list(views.images[:shown]), list(edited[chosen][:shown]),
+                                        list(independent[:shown])],
+                                       [["original"] * shown, ["sheet propagated"] * shown,
+                                        ["independent"] * shown]))
+  # Their cost against the sheet propagation's (the ablations' quality against time).
+  return {"independent_edits": {"views": len(chosen), "seconds": seconds},
+          "consistency": consistency}
+
+
+def _clip_similarity(context: EditContext, originals, edited, before, after) -> dict[str, float]:
+  model = clip_similarity.load_clip_model(context.settings.evaluation.clip_model)
+  captions = (context.settings.evaluation.source_caption, context.settings.edit.prompt)
+  return {
+      "image": float(np.mean(clip_similarity.clip_directional_similarity(
+          model, originals, edited, *captions))),
+      "nerf": float(np.mean(clip_similarity.clip_directional_similarity(
+          model, before.render, after, *captions)))}
+
+
+def _figures(context: EditContext, iteration: int, nerfs, before, after) -> list:
+  """Before/after at the held-out cameras showing the most of the selection, the sheet, and an
+  orbit video; returns their paths."""
+  directory, config = context.directory.path("evaluation"), context.settings.evaluation
+  shown = np.argsort(-np.count_nonzero(before.selected.reshape(len(after), -1), axis=1),
+                     kind="stable")[:BEFORE_AFTER_VIEWS]
+  files.write_image(directory / "before_after.png", figures.image_grid(
+      [[before.render[index] for index in shown], [after[index] for index in shown]],
+      [["before"] * len(shown), ["after"] * len(shown)]))
+  sheet_png = context.directory.path("sheet", "sheet.png", iteration=iteration)
+  files.write_bytes(directory / "sheet.png", sheet_png.read_bytes())
+  outputs = [directory / "before_after.png", directory / "sheet.png"]
+  if config.video_frames:
+    path = render.orbit_cameras(nerfs[1].model, context.dataset.cameras, config.video_frames)
+    frames = np.concatenate([render.render_cameras(nerf.model, nerf.variables, path)["rgb"]
+                             for nerf in nerfs], axis=2)
+    outputs.append(render.write_video(directory / "before_after.mp4", frames, config.video_fps))
+  return outputs
+
+
+def evaluate_edit(context: EditContext) -> str:
+  iteration = 2 if context.settings.edit.second_iteration else 1
+  original, edited_nerf = context.nerf(0), context.nerf(iteration)
+  before = _held_out_conditioning(context, original)
+  after = render.render_cameras(edited_nerf.model, edited_nerf.variables,
+                                context.eval_cameras)["rgb"]
+  metrics: dict[str, Any] = {"prompt": context.settings.edit.prompt,
+                             "num_eval_views": context.eval_cameras.num_cameras}
+  metrics["background"] = background.background_preservation(before.render, after,
+                                                              before.mask > 0)
+  # The training views that show the selection: originals and their sheet-propagated edits.
+  visible = context.visible_views()
+  originals, edited = context.dataset.images[visible], edited_images(context, iteration, visible)
+  conditioned = context.conditioning_of_views().take(visible)
+  metrics.update(_adherence(context, originals, edited, conditioned, before, after))
+  if context.settings.evaluation.independent_views:
+    metrics.update(_consistency(context, visible, originals, edited, conditioned))
+  if context.settings.evaluation.clip_model:
+    metrics["clip_directional_similarity"] = _clip_similarity(context, originals, edited, before,
+                                                              after)
+  outputs = _figures(context, iteration, (original, edited_nerf), before, after)
+  metrics["stage_seconds"] = context.directory.stage_seconds()
+  metrics_path = context.directory.path("evaluation", "metrics.json")
+  files.write_json(metrics_path, metrics)
+  bg = metrics["background"]
+  return (f"background PSNR {bg['psnr_paper']:.2f} dB / SSIM {bg['ssim_paper']:.3f} (paper's "
+          f"masked images; background only: {bg['psnr_background']:.2f} dB) on "
+          f"{context.eval_cameras.num_cameras} held-out views: "
+          f"{', '.join(map(str, [metrics_path, *outputs]))}")

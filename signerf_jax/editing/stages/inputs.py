@@ -1,0 +1,85 @@
+"""The stages every edit starts with (paper, Sec. 3 steps 1-2): the original NeRF, the selection,
+and each training view's mask and control depth rendered from the original NeRF."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from signerf_jax import files
+from signerf_jax.editing import conditioning as conditioning_lib
+from signerf_jax.editing import select as select_lib
+from signerf_jax.editing.config import as_json
+from signerf_jax.editing.project import load_arrays, save_arrays
+from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.geometry import masks as masks_lib
+from signerf_jax.geometry import reference_cameras
+from signerf_jax.nerf import training_run
+
+# Dataset views are rendered and conditioned this many at a time.
+VIEWS_PER_CHUNK = 8
+
+
+def original_settings(context: EditContext) -> dict[str, Any]:
+  settings = context.settings
+  if settings.edit.original_run:
+    return {"original_run": str(Path(settings.edit.original_run).resolve())}
+  return {"data": context.data_options, "train": as_json(settings.training["original"]),
+          "capacity": as_json(settings.capacity)}
+
+
+def train_original(context: EditContext) -> str:
+  if context.settings.edit.original_run:
+    trained = context.nerf(0)
+    return (f"using the trained NeRF {context.original_run_dir} (step {trained.step}, "
+            f"{trained.seconds_trained:.0f} s trained)")
+  trainer = training_run.train(context.dataset, context.original_run_dir,
+                               config=context.settings.training["original"],
+                               capacity_rules=context.settings.capacity,
+                               data_options=context.data_options, progress=context.progress)
+  return (f"{trainer.step} steps ({trainer.seconds_trained:.0f} s) on "
+          f"{context.dataset.num_images} views, last batch "
+          f"{trainer.last_statistics.get('psnr', float('nan')):.2f} dB: {context.original_run_dir}")
+
+
+def select(context: EditContext) -> str:
+  selection = context.selection
+  written = select_lib.write_selection(context.directory.path("selection"), selection)
+  seeing = reference_cameras.cameras_seeing(context.dataset.cameras, selection.points)
+  center, radius = selection.sphere()
+  what = (f"box {np.round(selection.bounds, 3).tolist()}" if selection.kind == "box"
+          else f"proxy {Path(selection.proxy.source).name} ({len(selection.proxy.faces)} "
+               "triangles)")
+  return (f"{what} around {np.round(center, 3).tolist()} (radius {radius:.3f}), in view of "
+          f"{int(seeing.sum())} of {len(seeing)} cameras: {', '.join(map(str, written))}")
+
+
+def condition_views(context: EditContext) -> str:
+  """Renders each training view's mask and control depth (resumable: finished views are kept)
+  and records which views show the selection."""
+  dataset, original = context.dataset, context.nerf(0)
+  selection_config = context.settings.selection
+  indices = np.arange(dataset.num_images)
+  for start in range(0, len(indices), VIEWS_PER_CHUNK):
+    chunk = [index for index in indices[start:start + VIEWS_PER_CHUNK]
+             if not context.view_path(index).is_file()]
+    if not chunk:
+      continue
+    conditioned = conditioning_lib.condition_views(original.model, original.variables,
+                                                   dataset.cameras, chunk, context.selection,
+                                                   selection_config, VIEWS_PER_CHUNK)
+    for position, index in enumerate(chunk):
+      save_arrays(context.view_path(index), **{name: array[position] for name, array
+                                               in conditioned.arrays().items()})
+  mask_pixels = np.asarray([np.count_nonzero(load_arrays(context.view_path(index))["mask"])
+                            for index in indices])
+  empty = masks_lib.views_with_empty_masks(mask_pixels[:, None, None]
+                                           >= selection_config.min_mask_pixels)
+  visible = np.setdiff1d(indices, empty)
+  files.write_json(context.directory.path("views", "views.json"),
+                   {"visible": visible, "empty": empty, "mask_pixels": mask_pixels})
+  skipped = f", {len(empty)} do not see the selection and stay as they are" if len(empty) else ""
+  return (f"{dataset.num_images} training views conditioned from the original NeRF, "
+          f"{len(visible)} show the selection{skipped}: {context.directory.path('views')}")

@@ -1,0 +1,104 @@
+"""The update and dataset stages (paper, Sec. 3 step 6, "Image Set Update"): every training view
+that shows the selection is inpainted in the empty slot of the sheet, and the edited views are
+written as a nerfstudio dataset with the masks, control depth and provenance alongside."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from signerf_jax import files
+from signerf_jax.editing import edited_dataset
+from signerf_jax.editing import update as update_lib
+from signerf_jax.editing.config import as_json
+from signerf_jax.editing.project import directory_fingerprint, load_arrays
+from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.nerf import render
+
+
+def update_settings(context: EditContext, iteration: int) -> dict[str, Any]:
+  config = context.settings.sheet
+  return {"seed": context.settings.edit.seed, "generation": context.generation_key(iteration),
+          "crops": config.crops, "crop_margin": config.crop_margin,
+          "crop_max_upscale": config.crop_max_upscale}
+
+
+def _view_loader(context: EditContext, iteration: int):
+  """indices -> `update.SlotViews` of those training views (images, masks, control, boxes)."""
+  dataset = context.dataset
+  boxes = context.tile_boxes(dataset.cameras)
+  edited_nerf = context.nerf(iteration - 1) if iteration > 1 else None
+
+  def load_views(indices: np.ndarray) -> update_lib.SlotViews:
+    conditioned = [load_arrays(context.view_path(int(index))) for index in indices]
+    masks = np.stack([item["mask"] for item in conditioned])
+    images = dataset.images[indices]
+    if edited_nerf is not None:
+      # Iteration 2 updates what the edited NeRF shows in the selection, the photo elsewhere.
+      rendered = render.render_cameras(edited_nerf.model, edited_nerf.variables,
+                                       dataset.cameras.take(indices))["rgb"]
+      images = images * (1 - masks[..., None]) + rendered * masks[..., None]
+    return update_lib.SlotViews(images=images, masks=masks,
+                                controls=np.stack([item["control"] for item in conditioned]),
+                                boxes=boxes[indices])
+
+  return load_views
+
+
+def update_image_set(context: EditContext, iteration: int = 1) -> str:
+  sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration))
+  visible = context.visible_views()
+  directory = context.directory.path("update", iteration=iteration)
+  report = update_lib.run_update(context.generator(iteration), sheet["rgb"], sheet["control"],
+                                 context.layout, visible, _view_loader(context, iteration),
+                                 directory, context.settings.edit.seed,
+                                 progress=context.progress)
+  skipped = context.dataset.num_images - len(visible)
+  resumed = f", {report['resumed']} done before" if report["resumed"] else ""
+  return (f"{len(visible)} views inpainted in the slot of sheet {sheet['recipe']} "
+          f"({report['batches']} batches of {report['batch_size']} on {report['devices']} "
+          f"device(s){resumed}), {skipped} without the selection left as they are: "
+          f"{directory / update_lib.IMAGES_FOLDER}")
+
+
+def edited_images(context: EditContext, iteration: int, indices: np.ndarray) -> np.ndarray:
+  """[len(indices), H, W, 3] float32 in [0, 1]: the update stage's images of those views."""
+  directory = context.directory.path("update", iteration=iteration)
+  images = [files.read_image(update_lib.edited_image_path(directory, int(index)))[..., :3]
+            for index in indices]
+  return np.stack(images) if images else np.zeros((0, *context.dataset.images.shape[1:]),
+                                                  np.float32)
+
+
+def _provenance(context: EditContext, iteration: int) -> dict[str, Any]:
+  settings, config = context.settings, context.settings.edit
+  return {
+      "tool": "signerf_jax.editing", "iteration": iteration, "prompt": config.prompt,
+      "negative_prompt": config.negative_prompt, "seed": config.seed,
+      "sheet": config.sheet_recipe(iteration), "selection": as_json(settings.selection),
+      "selection_scene_frame": context.selection.describe(),
+      "generation": as_json(settings.generation_options(iteration)),
+      "sheet_layout": as_json(settings.sheet), "tile_size": context.tile_size,
+      "model": directory_fingerprint(config.model),
+      "controlnet": directory_fingerprint(config.controlnet) if config.controlnet else None,
+      "source_dataset": context.data_options,
+      "original_nerf": str(context.original_run_dir.resolve()),
+      "unedited_views": np.setdiff1d(np.arange(context.dataset.num_images),
+                                     context.visible_views()).tolist(),
+      "gin_config": settings.gin_config,
+  }
+
+
+def write_dataset(context: EditContext, iteration: int = 1) -> str:
+  dataset = context.dataset
+  conditioned = context.conditioning_of_views()
+  images = dataset.images.copy()
+  visible = context.visible_views()
+  images[visible] = edited_images(context, iteration, visible)
+  directory = context.directory.path("dataset", iteration=iteration)
+  transforms = edited_dataset.write_edited_dataset(
+      directory, dataset, images, conditioned.mask, conditioned.control,
+      conditioned.control_depth, _provenance(context, iteration))
+  return (f"{dataset.num_images} views (originals, masks, control depth alongside) in nerfstudio "
+          f"format: {transforms}")

@@ -1,0 +1,102 @@
+"""The preview and sheet stages (paper, Sec. 3 step 5, "Reference Sheet").
+
+The preview generates candidate sheets for several seeds (and re-rolls of some tiles) side by
+side, so the user can pick one; the sheet stage makes the chosen recipe, reusing the preview's
+candidate when it was made from the same reference tiles with the same settings.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from signerf_jax import files
+from signerf_jax.editing import figures, generation
+from signerf_jax.editing.project import canonical_json, load_arrays, save_arrays
+from signerf_jax.editing.stages.context import EditContext
+
+# A lookup of candidate sheets already generated: recipe -> [H, W, 3] sheet, or None.
+KnownSheets = Callable[[generation.SheetRecipe], "np.ndarray | None"]
+
+
+def sheet_inputs(context: EditContext, iteration: int) -> generation.SheetInputs:
+  tiles = load_arrays(context.directory.path("reference", "inputs.npz", iteration=iteration))
+  return generation.SheetInputs.from_tiles(tiles["render"], tiles["control"], tiles["mask"],
+                                           context.layout)
+
+
+def _candidate_path(context: EditContext, recipe: generation.SheetRecipe) -> Path:
+  return context.directory.path("preview", "candidates", f"{recipe.file_stem}.npz")
+
+
+def _candidate_key(context: EditContext) -> str:
+  """What a first-iteration candidate depends on: the reference tiles and the generation."""
+  return (canonical_json({"reference": context.keys["reference"]})
+          + canonical_json(context.generation_key(1)))
+
+
+def _known_candidates(context: EditContext) -> KnownSheets:
+  """Preview candidates made with the current reference tiles and settings."""
+  expected = _candidate_key(context)
+
+  def known(recipe: generation.SheetRecipe) -> np.ndarray | None:
+    path = _candidate_path(context, recipe)
+    if not path.is_file():
+      return None
+    stored = load_arrays(path)
+    return stored["rgb"] if str(stored["key"]) == expected else None
+
+  return known
+
+
+def preview_recipes(context: EditContext) -> list[generation.SheetRecipe]:
+  config = context.settings.preview
+  texts = [str(seed) for seed in config.seeds] + list(config.recipes)
+  return [generation.SheetRecipe.parse(text) for text in dict.fromkeys(texts)]
+
+
+def preview_settings(context: EditContext) -> dict[str, Any]:
+  return {"recipes": [str(recipe) for recipe in preview_recipes(context)],
+          "generation": context.generation_key(1)}
+
+
+def preview(context: EditContext) -> str:
+  recipes = preview_recipes(context)
+  known, key = _known_candidates(context), _candidate_key(context)
+  inputs = sheet_inputs(context, 1)
+  sheets = generation.generate_sheets(context.generator(1), inputs, recipes, known)
+  for recipe, sheet in sheets.items():
+    path = _candidate_path(context, recipe)
+    if known(recipe) is None:
+      save_arrays(path, rgb=sheet, key=np.asarray(key))
+      files.write_image(path.with_suffix(".png"), sheet)
+  preview_png = context.directory.path("preview", "preview.png")
+  files.write_image(context.directory.path("preview", "inputs.png"), figures.image_grid(
+      [[inputs.rgb, inputs.mask, inputs.control]], [["reference renders", "masks", "control"]]))
+  files.write_image(preview_png, figures.image_grid(
+      [[sheets[recipe] for recipe in recipes]], [[f"sheet {recipe}" for recipe in recipes]]))
+  return (f"{len(recipes)} candidate sheets ({', '.join(map(str, recipes))}) side by side: "
+          f"{preview_png}; pick one with --sheet RECIPE, re-roll tiles with --reroll "
+          "SEED/TILE,TILE@NEWSEED")
+
+
+def sheet_settings(context: EditContext, iteration: int) -> dict[str, Any]:
+  return {"recipe": context.settings.edit.sheet_recipe(iteration),
+          "generation": context.generation_key(iteration)}
+
+
+def generate_sheet(context: EditContext, iteration: int = 1) -> str:
+  recipe = generation.SheetRecipe.parse(context.settings.edit.sheet_recipe(iteration))
+  inputs = sheet_inputs(context, iteration)
+  known = _known_candidates(context) if iteration == 1 else (lambda recipe: None)
+  reused = known(recipe) is not None
+  sheet = generation.generate_sheets(context.generator(iteration), inputs, [recipe],
+                                     known)[recipe]
+  directory = context.directory.path("sheet", iteration=iteration)
+  save_arrays(directory / "sheet.npz", rgb=sheet, control=inputs.control, mask=inputs.mask,
+              recipe=np.asarray(str(recipe)))
+  files.write_image(directory / "sheet.png", sheet)
+  how = "taken from the preview" if reused else "generated"
+  return f"sheet {recipe} {how}: {directory / 'sheet.png'}"

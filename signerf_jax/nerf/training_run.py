@@ -1,0 +1,198 @@
+"""A NeRF training run: its directory, the `Trainer` advancing it, and `train`, the entry point.
+
+A run directory holds:
+  config.gin          the gin bindings, written by the command that parsed them (not here)
+  model.json          scene geometry, capacity and where the data came from
+  checkpoint.msgpack  the latest TrainState plus step / seconds trained (`checkpoints`)
+A resumed run continues exactly as an uninterrupted one (`train.train_step`'s randomness follows
+the step). The loop itself, with its time budget and divergence guard, is `training_loop`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+from jax.sharding import Mesh
+
+from signerf_jax import checkpoints, files, parallel, training_loop
+from signerf_jax.data.dataset import Dataset
+from signerf_jax.errors import InputError
+from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.capacity import Capacity, CapacityRules, SceneInfo, derive_capacity
+from signerf_jax.nerf.train import (TrainConfig, TrainingData, TrainState, init_state,
+                                    make_train_step)
+
+MODEL_FILE = "model.json"
+
+
+@dataclasses.dataclass
+class Trainer:
+  """A training run in memory: the model, its jitted step and the state, advanced in bursts.
+
+  `train` below is the usual entry point; benchmarks use a Trainer directly to evaluate between
+  bursts without recompiling. `mesh` is the devices the steps run on (None: all of them).
+  """
+
+  model: nerf_model.NerfModel
+  config: TrainConfig
+  data: TrainingData
+  state: TrainState
+  seconds_trained: float = 0.0
+  samples_trained: float = 0.0
+  last_statistics: dict[str, float] = dataclasses.field(default_factory=dict)
+  mesh: Mesh | None = None
+
+  def __post_init__(self):
+    self.mesh = parallel.device_mesh() if self.mesh is None else self.mesh
+    self._step_fn = make_train_step(self.model, self.config, self.mesh)
+    # Placed once: the step would otherwise copy the images to every device at each call.
+    self.data, self.state = parallel.replicate((self.data, self.state), self.mesh)
+
+  @property
+  def step(self) -> int:
+    return int(self.state.step)
+
+  @property
+  def progress(self) -> float:
+    """How far through its schedule the run is, in [0, 1]: the larger of the steps done over
+    `config.steps` and the seconds trained over `config.max_seconds` (when set)."""
+    fractions = [self.step / max(self.config.steps, 1)]
+    if self.config.max_seconds:
+      fractions.append(self.seconds_trained / self.config.max_seconds)
+    return min(1.0, max(fractions))
+
+  def run(self, *, until_step: int | None = None, until_seconds: float | None = None,
+          run_dir: str | os.PathLike | None = None, progress: bool = True) -> dict[str, float]:
+    """Trains until `until_step` (default: config.steps) or `until_seconds` of total training
+    time (default: config.max_seconds), checkpointing into `run_dir` (if given) periodically
+    and at the end (`training_loop.run_loop`, which also stops a diverged run).
+
+    Returns:
+      the last step's statistics (floats).
+    """
+    def advance(seconds_trained: float) -> dict[str, float]:
+      self.seconds_trained = seconds_trained
+      self.state, statistics = self._step_fn(self.state, self.data, jnp.float32(self.progress))
+      # Read at once (blocking), so the loop times each step and `progress` follows it.
+      statistics = {name: float(value) for name, value in statistics.items()}
+      self.samples_trained += statistics["samples"]
+      return statistics
+
+    def save(seconds_trained: float) -> None:
+      self.seconds_trained = seconds_trained
+      self.save(run_dir)
+
+    budget = training_loop.LoopBudget(
+        until_step=self.config.steps if until_step is None else until_step,
+        max_seconds=until_seconds if until_seconds is not None else self.config.max_seconds,
+        checkpoint_every_steps=self.config.checkpoint_every_steps,
+        checkpoint_every_seconds=self.config.checkpoint_every_seconds)
+    result = training_loop.run_loop(
+        advance, None if run_dir is None else save, budget, step=self.step,
+        seconds_trained=self.seconds_trained, where=run_dir or "training",
+        hint="a lower TrainConfig.learning_rate", progress=progress)
+    self.seconds_trained = result.seconds_trained
+    self.last_statistics = result.statistics or self.last_statistics
+    return self.last_statistics
+
+  def save(self, run_dir: str | os.PathLike) -> None:
+    checkpoints.save(run_dir, self.state, {"step": self.step,
+                                          "seconds_trained": self.seconds_trained,
+                                          "samples_trained": self.samples_trained})
+
+  def restore(self, run_dir: str | os.PathLike) -> None:
+    """Continues from the checkpoint in `run_dir` (state, seconds and samples trained)."""
+    state, metadata = checkpoints.restore(run_dir, self.state)
+    # Placed like the fresh state: host arrays would make the first step compile again.
+    self.state = parallel.replicate(state, self.mesh)
+    self.seconds_trained = float(metadata.get("seconds_trained", 0.0))
+    self.samples_trained = float(metadata.get("samples_trained", 0.0))
+
+
+def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
+                     dataset: Dataset, data_options: dict[str, Any] | None = None) -> None:
+  files.write_json(Path(run_dir) / MODEL_FILE, {
+      "scene": dataclasses.asdict(model.scene),
+      "capacity": dataclasses.asdict(model.capacity),
+      "edit_region": model.edit_region,
+      "dataset": dataset.summary(),
+      "data_options": dict(data_options or {}),
+  })
+
+
+def read_model_file(run_dir: str | os.PathLike) -> tuple[nerf_model.NerfModel, dict[str, Any]]:
+  """The model of a run and the rest of model.json (dataset summary, data options)."""
+  path = Path(run_dir) / MODEL_FILE
+  description = files.read_json(path)
+  try:
+    model = nerf_model.NerfModel(SceneInfo.from_json(description["scene"]),
+                                 Capacity.from_json(description["capacity"]),
+                                 description.get("edit_region"))
+  except (KeyError, TypeError, ValueError, InputError) as error:
+    raise InputError(f"malformed model description ({error})", path) from None
+  return model, description
+
+
+def build_model(dataset: Dataset, capacity: Capacity | None = None,
+                rules: CapacityRules = CapacityRules()) -> nerf_model.NerfModel:
+  """The model for a dataset: `capacity`, or the one `rules` derive from the dataset."""
+  scene = SceneInfo.from_dataset(dataset)
+  return nerf_model.NerfModel(scene, capacity or derive_capacity(scene, rules))
+
+
+def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
+                 config: TrainConfig = TrainConfig(), init_variables=None,
+                 pixel_weights=None, mesh: Mesh | None = None,
+                 capacity_rules: CapacityRules = CapacityRules()) -> Trainer:
+  """A Trainer at step 0 (fresh, or fine-tuning from `init_variables`), data-parallel over
+  `mesh` (default: all devices); the model is derived by `capacity_rules` unless given."""
+  model = model or build_model(dataset, rules=capacity_rules)
+  return Trainer(model, config, TrainingData.from_dataset(dataset, pixel_weights),
+                 init_state(model, config, init_variables), mesh=mesh)
+
+
+def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
+          steps: int | None = None, max_seconds: float | None = None, pixel_weights=None,
+          model: nerf_model.NerfModel | None = None, config: TrainConfig = TrainConfig(),
+          capacity_rules: CapacityRules = CapacityRules(),
+          data_options: dict[str, Any] | None = None, progress: bool = True) -> Trainer:
+  """Trains (or resumes, if `run_dir` has a checkpoint) a NeRF on `dataset`.
+
+  Args:
+    dataset: training views.
+    run_dir: where model.json and the checkpoint go.
+    init_variables: start from these variables (fine-tuning; e.g. `load_run(...).variables`);
+      the model must then be the one they belong to (pass `model`).
+    steps, max_seconds: override TrainConfig.steps / max_seconds.
+    pixel_weights: optional [N, H, W] per-pixel loss weights (multiplied with dataset.masks).
+    model: the architecture (default: the run's own when resuming, else derived from the
+      dataset by `capacity_rules`).
+    config: training settings.
+    capacity_rules: how a new model is sized (unused when `model` is given or resumed).
+    data_options: how the data was loaded (root, downscale, ...), recorded for `signerf eval`.
+    progress: show a progress bar.
+  Returns:
+    the Trainer after training (model, state, seconds_trained).
+  """
+  overrides = {name: value for name, value in (("steps", steps), ("max_seconds", max_seconds))
+               if value is not None}
+  config = dataclasses.replace(config, **overrides)
+  run_dir = Path(run_dir)
+  if checkpoints.has_checkpoint(run_dir):
+    saved_model, _ = read_model_file(run_dir)
+    if model is not None and model != saved_model:
+      raise InputError("the run directory holds a different model", run_dir / MODEL_FILE)
+    model = saved_model
+  trainer = make_trainer(dataset, model=model, config=config, init_variables=init_variables,
+                         pixel_weights=pixel_weights, capacity_rules=capacity_rules)
+  run_dir.mkdir(parents=True, exist_ok=True)
+  if checkpoints.has_checkpoint(run_dir):
+    trainer.restore(run_dir)
+  else:
+    write_model_file(run_dir, trainer.model, dataset, data_options)
+  trainer.run(run_dir=run_dir, progress=progress)
+  return trainer
