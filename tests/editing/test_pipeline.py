@@ -2,6 +2,7 @@
 skips finished stages, a changed setting redoes exactly the stages that depend on it, and the
 edited dataset is a nerfstudio dataset whose unmasked pixels are the originals."""
 
+import json
 from pathlib import Path
 
 import gin
@@ -153,7 +154,18 @@ def test_a_command_saves_the_bindings_that_a_later_command_reads_back(finished_e
   directory, _, chosen = finished_edit
   settings = settings_of(chosen)
   commands.run_command("edit", directory, progress=False)  # Every stage done before: fast.
-  assert "done before" in capsys.readouterr().out
+  assert "done before" in capsys.readouterr().err
   gin.clear_config()
   commands.parse_edit_config(directory, (), ())  # config.gin only, no bindings given.
   assert commands.edit_settings() == settings
+
+
+def test_eval_of_an_edit_prints_one_json_line(finished_edit, capsys):
+  directory, _, chosen = finished_edit
+  settings_of(chosen)
+  commands.run_command("edit", directory, progress=False)  # Saves config.gin; all done before.
+  capsys.readouterr()
+  assert commands.run_evaluation(directory) == 0
+  out = capsys.readouterr().out
+  assert len(out.splitlines()) == 1, out
+  assert np.isfinite(json.loads(out)["background"]["psnr_paper"])

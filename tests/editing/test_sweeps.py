@@ -36,6 +36,9 @@ def test_the_original_nerf_is_trained_once_and_reused(swept):
   assert not (sweep.root / "group" / "baseline" / "original").exists()
   used = [line for line in lines if line.startswith("group/baseline") and "] original:" in line]
   assert any("using the trained NeRF" in line for line in used), used
+  # With a trained NeRF given, the stage says it loads it (issue 18: it said "training").
+  assert not any("training the original NeRF" in line for line in used), used
+  assert any("loading the given trained NeRF" in line for line in used), used
   assert first["stage_seconds"]["original"] < original["seconds"]
 
 

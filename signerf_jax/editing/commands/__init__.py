@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -176,13 +177,15 @@ def edit_settings() -> EditSettings:
 def run_command(name: str, directory: str | Path, redo=(), progress: bool = True
                 ) -> stages.EditContext:
   """Runs the pipeline up to the command's stage with the current gin bindings (saved as
-  `directory`/config.gin first, which later commands read back), each stage's lines prefixed
-  `signerf NAME`."""
+  `directory`/config.gin first, which later commands read back). Each stage's progress lines,
+  prefixed `signerf NAME`, go to stderr as the progress bars do: stdout holds only the
+  command's result (for `signerf eval --edit`, one JSON line)."""
   settings = edit_settings()
   configs.save_gin_config(directory)
   return stages.run_edit(directory, settings, until=LAST_STAGE[name], redo=tuple(redo),
-                         progress=progress, log=lambda line: print(f"signerf {name} {line}",
-                                                                   flush=True))
+                         progress=progress,
+                         log=lambda line: print(f"signerf {name} {line}", file=sys.stderr,
+                                                flush=True))
 
 
 def run_stages(name: str, args: argparse.Namespace, extra_bindings=()

@@ -90,7 +90,9 @@ def pipeline_stages(settings: EditSettings) -> list[Stage]:
   second = settings.edit.second_iteration
   stages = [
       Stage("original", inputs.train_original, inputs.original_settings, (),
-            () if settings.edit.original_run else ("original",), "training the original NeRF"),
+            () if settings.edit.original_run else ("original",),
+            "loading the given trained NeRF" if settings.edit.original_run
+            else "training the original NeRF"),
       Stage("select", inputs.select, lambda context: as_json(context.settings.selection),
             ("original",), ("selection",), "building the selection"),
       Stage("views", inputs.condition_views, _no_settings, ("original", "select"), ("views",),
