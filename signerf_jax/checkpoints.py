@@ -1,10 +1,12 @@
 """Checkpoints of every trainer (the NeRF, its fine-tuning, the shipped model's stages): the whole
 training state (a flax-serialisable pytree) and JSON-like metadata in one msgpack file.
 
-The file holds the serialised payload and its sha256, so a damaged or altered checkpoint is an
-error rather than a silently different resume, and it is replaced atomically (written to a
-temporary file, flushed to disk, renamed), so an interrupted run keeps the previous one.
-Temporary files a killed run left behind are removed by the next save.
+The file holds the serialised payload and its sha256, so a damaged or altered checkpoint is
+never a silently different resume, and it is replaced atomically (written to a temporary file,
+flushed to disk, renamed), so an interrupted run keeps the previous one. The checkpoint it
+replaces is kept as checkpoint.previous.msgpack: when the latest is damaged (or a kill left only
+the previous one), `read` falls back to it with a warning. Temporary files a killed run left
+behind are removed by the next save.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import warnings
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -23,6 +26,7 @@ from signerf_jax import files
 from signerf_jax.errors import InputError
 
 CHECKPOINT_NAME = "checkpoint.msgpack"
+PREVIOUS_NAME = "checkpoint.previous.msgpack"
 
 State = TypeVar("State")
 
@@ -32,7 +36,8 @@ def checkpoint_path(directory: str | os.PathLike) -> Path:
 
 
 def has_checkpoint(directory: str | os.PathLike) -> bool:
-  return checkpoint_path(directory).is_file()
+  """Whether `directory` holds a checkpoint to resume from (the latest or the previous one)."""
+  return checkpoint_path(directory).is_file() or (Path(directory) / PREVIOUS_NAME).is_file()
 
 
 def save(directory: str | os.PathLike, state: Any, metadata: dict[str, Any]) -> Path:
@@ -43,28 +48,51 @@ def save(directory: str | os.PathLike, state: Any, metadata: dict[str, Any]) -> 
       orphan.unlink()
   payload = flax.serialization.msgpack_serialize({
       "state": flax.serialization.to_state_dict(jax.device_get(state)), "metadata": metadata})
-  files.write_bytes(path, flax.serialization.msgpack_serialize(
-      {"sha256": hashlib.sha256(payload).hexdigest(), "payload": payload}))
+  envelope = flax.serialization.msgpack_serialize(
+      {"sha256": hashlib.sha256(payload).hexdigest(), "payload": payload})
+  with files.atomic_path(path) as temporary:
+    temporary.write_bytes(envelope)
+    # Written in full before the latest becomes the previous: a kill between the two renames
+    # leaves the previous checkpoint, which `read` resumes from.
+    if path.is_file():
+      os.replace(path, path.parent / PREVIOUS_NAME)
   return path
 
 
 def read(directory: str | os.PathLike) -> tuple[dict[str, Any], dict[str, Any]]:
-  """The checkpoint's state (as a nested dict of arrays) and metadata, checksum verified.
+  """The checkpoint's state (as a nested dict of arrays) and metadata, checksum verified. A
+  missing or damaged latest checkpoint falls back to the previous one, with a warning.
 
   Raises:
-    InputError: no checkpoint, an unreadable one (truncated, not a checkpoint), or one whose
-      checksum does not match its contents.
+    InputError: no checkpoint, or an unreadable one (truncated, not a checkpoint, a checksum
+      that does not match its contents) and no readable previous one.
   """
-  path = checkpoint_path(directory)
+  path, previous = checkpoint_path(directory), Path(directory) / PREVIOUS_NAME
+  try:
+    return _read_file(path)
+  except InputError as error:
+    if not previous.is_file():
+      raise
+    try:
+      state, metadata = _read_file(previous)
+    except InputError:
+      raise error from None
+    warnings.warn(f"{error}; resuming from the previous checkpoint {previous} (step "
+                  f"{metadata.get('step', '?')})", stacklevel=2)
+    return state, metadata
+
+
+def _read_file(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
   if not path.is_file():
     raise InputError("checkpoint not found", path)
   try:
     envelope = flax.serialization.msgpack_restore(path.read_bytes())
     payload, digest = envelope["payload"], envelope["sha256"]
+    matches = hashlib.sha256(payload).hexdigest() == digest
   except (ValueError, KeyError, TypeError) as error:
     raise InputError(f"not a readable checkpoint (truncated or another format: {error})",
                      path) from None
-  if hashlib.sha256(payload).hexdigest() != digest:
+  if not matches:
     raise InputError("the checkpoint is damaged: its contents do not match their checksum",
                      path, "sha256")
   contents = flax.serialization.msgpack_restore(payload)

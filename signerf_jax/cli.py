@@ -11,6 +11,7 @@ import importlib
 import sys
 from typing import Sequence
 
+from signerf_jax import files
 from signerf_jax.errors import InputError
 
 # name -> (module implementing it, one-line help). Stages add themselves here.
@@ -52,6 +53,8 @@ def main(argv: Sequence[str] | None = None) -> int:
   args = build_parser(argv).parse_args(argv)
   module = importlib.import_module(args.module_name)
   try:
+    if getattr(args, "out", None):  # Every command names the directory it writes `--out`.
+      files.check_output_directory(args.out)
     return int(module.run(args) or 0)
   except InputError as error:
     print(f"signerf {args.command}: error: {error}", file=sys.stderr)

@@ -84,14 +84,23 @@ def build(cls: type[Config], scope: str | None = None) -> Config:
   Returns:
     an instance of `cls` itself (equal to `cls(...)` with the same values).
   Raises:
-    InputError: `cls` is not one of `configurables()`, or its own checks reject a bound value.
+    InputError: `cls` is not one of `configurables()`, or its checks (`validation`) reject a
+      bound value; the error names the binding, e.g. `finetune/TrainConfig.steps`.
   """
   wrapped = _gin_classes().get(cls)
   if wrapped is None:
     raise InputError(f"{getattr(cls, '__qualname__', repr(cls))} is not a class gin binds (see "
                      "configs.configurables())", field="cls")
-  with gin.config_scope(scope) if scope is not None else contextlib.nullcontext():
-    instance = wrapped()
+  try:
+    with gin.config_scope(scope) if scope is not None else contextlib.nullcontext():
+      instance = wrapped()
+  except InputError as error:
+    # The class's checks name `<class>.<field>`; the user wrote `<scope>/<gin name>.<field>`.
+    prefix = f"{scope}/" if scope else ""
+    field = error.field or ""
+    if field.split(".")[0] == cls.__name__:
+      field = prefix + configurables()[cls] + field[len(cls.__name__):]
+    raise InputError(error.problem, error.path, field or None) from None
   # Dataclasses compare classes too: an instance of gin's subclass never equals a plain one.
   return cls(**{field.name: getattr(instance, field.name)
                 for field in dataclasses.fields(cls) if field.init})

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -43,6 +44,42 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     with contextlib.suppress(FileNotFoundError):
       os.remove(temporary)
     raise
+
+
+# `atomic_path`'s temporary names: "." + the target's stem + "." + mkstemp's 8 random characters
+# + the target's suffix.
+_TEMPORARY_NAME = re.compile(r"\..+\.[a-z0-9_]{8}(\.[^.]+)?")
+
+
+def remove_temporaries(directory: str | os.PathLike) -> list[Path]:
+  """Deletes the temporary files `atomic_path` left under `directory` (any depth) when a run
+  was killed mid-write; a run calls this on its own directory as it starts. Returns them."""
+  removed = []
+  for path in Path(directory).rglob(".*"):
+    if path.is_file() and _TEMPORARY_NAME.fullmatch(path.name):
+      with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+        removed.append(path)
+  return removed
+
+
+def check_output_directory(path: str | os.PathLike, flag: str = "out") -> None:
+  """Refuses a directory to write into that names a file, or lies under one or under a
+  directory this process cannot write, before any work is done (nothing is created here).
+
+  Raises:
+    InputError naming the path and the flag.
+  """
+  path = Path(path)
+  if path.exists() and not path.is_dir():
+    raise InputError("names a file, not a directory", path, flag)
+  existing = path
+  while not existing.exists():
+    existing = existing.parent
+  if not existing.is_dir():
+    raise InputError(f"cannot be created: {existing} is a file", path, flag)
+  if not os.access(existing, os.W_OK | os.X_OK):
+    raise InputError(f"cannot be written: {existing} is not writable", path, flag)
 
 
 def _fsync(path: str | os.PathLike, flags: int) -> None:
@@ -82,15 +119,19 @@ def _json_default(value: Any) -> Any:
   raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def read_json(path: str | os.PathLike) -> Any:
-  """Parses a JSON file; a missing or malformed file is an InputError naming it."""
+def read_json(path: str | os.PathLike) -> dict[str, Any]:
+  """Parses a JSON file holding an object (every JSON file the project reads does); a missing
+  or malformed file, or one holding anything else (`[]`), is an InputError naming it."""
   path = Path(path)
   if not path.is_file():
     raise InputError("file not found", path)
   try:
-    return json.loads(path.read_text(encoding="utf-8"))
+    value = json.loads(path.read_text(encoding="utf-8"))
   except (json.JSONDecodeError, UnicodeDecodeError) as error:
     raise InputError(f"not valid JSON ({error})", path) from None
+  if not isinstance(value, dict):
+    raise InputError(f"expected a JSON object {{...}}, found a {type(value).__name__}", path)
+  return value
 
 
 # Larger images are refused before decoding (a 100 megapixel RGBA image is 1.6 GB as float32):

@@ -1,6 +1,7 @@
 """Checkpoints: a round trip keeps state and metadata; a damaged, truncated or foreign file and a
-state of another shape are errors naming the file; temporary files a killed run left behind go
-at the next save."""
+state of another shape are errors naming the file, unless the previous checkpoint is readable,
+which is then resumed from with a warning; temporary files a killed run left behind go at the
+next save."""
 
 import flax.serialization
 import numpy as np
@@ -62,3 +63,47 @@ def test_temporary_files_of_a_killed_run_go_at_the_next_save(tmp_path):
   checkpoints.save(tmp_path, STATE, {})
   assert not orphan.exists()
   assert sorted(path.name for path in tmp_path.iterdir()) == ["checkpoint.msgpack"]
+
+
+def flip_a_byte(path):
+  data = bytearray(path.read_bytes())
+  data[len(data) // 2] ^= 0x01
+  path.write_bytes(bytes(data))
+
+
+def truncate(path):
+  path.write_bytes(path.read_bytes()[:100])
+
+
+@pytest.mark.parametrize("damage", [flip_a_byte, truncate, lambda path: path.unlink()],
+                         ids=["flipped_byte", "truncated", "missing"])
+def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_with_a_warning(tmp_path, damage):
+  checkpoints.save(tmp_path, STATE, {"step": 7})
+  newer = {"params": {"w": STATE["params"]["w"] + 1}, "step": np.int32(8)}
+  damage(checkpoints.save(tmp_path, newer, {"step": 8}))
+  assert checkpoints.has_checkpoint(tmp_path)
+  with pytest.warns(UserWarning, match="resuming from the previous checkpoint.*step 7"):
+    state, metadata = checkpoints.restore(tmp_path, STATE)
+  np.testing.assert_array_equal(state["params"]["w"], STATE["params"]["w"])
+  assert metadata == {"step": 7}
+
+
+def test_without_a_readable_previous_checkpoint_the_latest_ones_error_stands(tmp_path):
+  checkpoints.save(tmp_path, STATE, {"step": 7})
+  path = checkpoints.save(tmp_path, STATE, {"step": 8})
+  flip_a_byte(path)
+  flip_a_byte(tmp_path / checkpoints.PREVIOUS_NAME)
+  with pytest.raises(InputError, match="damaged.*checksum") as error:
+    checkpoints.read(tmp_path)
+  assert error.value.path == str(path)
+
+
+def test_each_save_keeps_the_one_it_replaces(tmp_path):
+  for step in (1, 2, 3):
+    checkpoints.save(tmp_path, STATE, {"step": step})
+  assert checkpoints.read(tmp_path)[1] == {"step": 3}
+  assert sorted(path.name for path in tmp_path.iterdir()) == [
+      "checkpoint.msgpack", "checkpoint.previous.msgpack"]
+  (tmp_path / "checkpoint.msgpack").unlink()
+  with pytest.warns(UserWarning):
+    assert checkpoints.read(tmp_path)[1] == {"step": 2}

@@ -60,6 +60,9 @@ class Tokenizer(Protocol):
   def tokenize(self, texts: Sequence[str]) -> np.ndarray:
     """[B, max_length] int32 ids: bos, tokens, eos, then padding; long texts are truncated."""
 
+  def unknown_words(self, text: str) -> list[str]:
+    """The words of `text` the tokenizer can only map to its unknown token."""
+
 
 @functools.cache
 def byte_to_symbol() -> dict[int, str]:
@@ -255,6 +258,10 @@ class CLIPTokenizer:
     """[B, max_length] int32: `bos, ids[:max_length - 2], eos, pad, ...` per text."""
     return token_ids.framed_ids(texts, self.encode, self.max_length, self.bos_id, self.eos_id,
                                 self.pad_id)
+
+  def unknown_words(self, text: str) -> list[str]:
+    """None: byte-level BPE spells any word out of its pieces."""
+    return []
 
 
 def _split_special_tokens(text: str, special_tokens: Sequence[str]) -> list[tuple[str, bool]]:

@@ -115,6 +115,16 @@ class WordTokenizer:
     """Ids of the words of `text` (unknown words -> unk), without bos/eos or padding."""
     return [self.vocabulary.get(word, self.unk_id) for word in split_words(text)]
 
+  def unknown_words(self, text: str) -> list[str]:
+    """The words of `text` not in the vocabulary (each once, in order)."""
+    return list(dict.fromkeys(word for word in split_words(text) if word not in self.vocabulary))
+
+  @property
+  def words(self) -> list[str]:
+    """The vocabulary's words, special tokens left out, sorted."""
+    specials = set(SPECIAL_TOKENS.values())
+    return sorted(token for token in self.vocabulary if token not in specials)
+
   def tokenize(self, texts: Sequence[str]) -> np.ndarray:
     """[B, max_length] int32: `bos, ids[:max_length - 2], eos, pad, ...` per text."""
     return token_ids.framed_ids(texts, self.encode, self.max_length, self.bos_id, self.eos_id,

@@ -8,12 +8,14 @@ import time
 
 from signerf_jax import configs
 from signerf_jax.data import synthetic, synthetic_render
+from signerf_jax.validation import NonNegativeInt, argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--out", required=True, help="directory to write the dataset to")
   configs.add_gin_arguments(parser, "synthetic_cameras.image_size = 128")
-  parser.add_argument("--seed", type=int, default=0, help="random seed of the scene")
+  parser.add_argument("--seed", type=argument_type(NonNegativeInt), default=0,
+                      help="random seed of the scene")
 
 
 def run(args: argparse.Namespace) -> int:

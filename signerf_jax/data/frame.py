@@ -23,7 +23,8 @@ anything a user gives in the dataset's own units (a box, a proxy placement) conv
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+import typing
+from typing import Any, Literal
 
 import numpy as np
 
@@ -31,7 +32,8 @@ from signerf_jax.camera import Cameras
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.errors import InputError
 
-SCENE_KINDS = ("bounded", "forward_facing", "unbounded")
+SceneKind = Literal["bounded", "forward_facing", "unbounded"]
+SCENE_KINDS = typing.get_args(SceneKind)
 KIND_DESCRIPTIONS = {
     "bounded": "bounded object (constant background)",
     "forward_facing": "forward-facing capture",

@@ -149,6 +149,11 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
                                  eval_every=eval_every, held_out=held_out, path=capture.root)
   cameras = poses_lib.transform_cameras(frame.world_from_source, capture.cameras)
   cameras = cameras.take(selected).downscaled(downscale)
+  if min(cameras.width, cameras.height) < 1:
+    full_size = f"{capture.cameras.width}x{capture.cameras.height}"
+    raise InputError(f"{downscale} leaves no pixel of the {full_size} images (at most "
+                     f"{min(capture.cameras.width, capture.cameras.height)})", capture.root,
+                     "downscale")
   background = (capture.background_color if capture.background_color is not None
                 else np.asarray(background_color, np.float32))
   reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
@@ -183,6 +188,12 @@ def _check_options(downscale, scene_kind, scene_radius) -> None:
   if scene_radius is not None and not (isinstance(scene_radius, (int, float))
                                        and 0 < scene_radius < np.inf):
     raise InputError(f"must be a positive number, got {scene_radius!r}", field="scene_radius")
+
+
+# Where each format's camera size comes from, for the error when a file has another size.
+SIZE_SOURCES = {"llff": "poses_bounds.npy's hwf", "nerfstudio": "transforms.json's w and h",
+                "colmap": "the COLMAP cameras", "blender": "the first image",
+                "neus": "the first image"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -248,4 +259,5 @@ class _ViewReader:
       tolerance = 0 if factor == 1 else 1
     return views.read_view(read, prepared or path, view.field(kind), file_size=file_size,
                            target_size=self.target_size, method=method,
-                           size_tolerance=tolerance)
+                           size_tolerance=tolerance,
+                           size_source=SIZE_SOURCES.get(capture.format, "the cameras"))

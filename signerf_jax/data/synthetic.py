@@ -33,9 +33,12 @@ from typing import Any, Callable
 import numpy as np
 import trimesh
 
+from signerf_jax import validation
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data import raycast
 from signerf_jax.errors import InputError
+from signerf_jax.validation import (Color, NonNegativeFloat, NonNegativeInt, PositiveFloat,
+                                    UnitInterval, Vector3)
 
 SHAPES = ("sphere", "box", "cylinder", "mesh")
 PRIMITIVE_SHAPES = SHAPES[:3]
@@ -241,23 +244,35 @@ class SceneSettings:
     background_color: [3] RGB of the (bounded) background.
   """
 
-  num_primitives: int = 3
-  num_meshes: int = 1
+  num_primitives: NonNegativeInt = 3
+  num_meshes: NonNegativeInt = 1
   mesh_directory: str = DEFAULT_MESH_DIRECTORY
-  ground_half_size: float = 0.9
-  ground_thickness: float = 0.1
-  object_radius_range: tuple[float, float] = (0.15, 0.27)
-  free_spot_radius: float = 0.3
-  texture_frequency: float = 5.0
-  ground_texture_frequency: float = 12.0
-  light_direction: tuple[float, float, float] = (0.45, -0.35, 0.82)
-  ambient: float = 0.35
-  background_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+  ground_half_size: PositiveFloat = 0.9
+  ground_thickness: PositiveFloat = 0.1
+  object_radius_range: tuple[PositiveFloat, PositiveFloat] = (0.15, 0.27)
+  free_spot_radius: NonNegativeFloat = 0.3
+  texture_frequency: NonNegativeFloat = 5.0
+  ground_texture_frequency: NonNegativeFloat = 12.0
+  light_direction: Vector3 = (0.45, -0.35, 0.82)
+  ambient: UnitInterval = 0.35
+  background_color: Color = (1.0, 1.0, 1.0)
+
+  def __post_init__(self):
+    """Also rejects settings whose objects cannot fit: radii out of order, or a scene outside
+    the unit box."""
+    validation.check_fields(self)
+    minimum_radius, maximum_radius = self.object_radius_range
+    if not minimum_radius <= maximum_radius:
+      raise InputError(f"need min <= max, got {self.object_radius_range}",
+                       field="SceneSettings.object_radius_range")
+    # Tall shapes reach 3x their radius; with the margin everything must stay inside [-1, 1]^3.
+    if self.ground_half_size + BOUNDS_MARGIN > 1 or 3 * maximum_radius + BOUNDS_MARGIN > 1:
+      raise InputError("the scene would leave the unit box [-1, 1]^3",
+                       field="SceneSettings.ground_half_size")
 
 
 def make_scene(seed: int = 0, settings: SceneSettings = SceneSettings()) -> SyntheticScene:
   """Builds a random scene, deterministic in `seed` (and the meshes found)."""
-  _check_settings(settings)
   rng = np.random.default_rng(seed)
   footprints = _Footprints(rng, settings.ground_half_size)
   free_spot_center = footprints.place(settings.free_spot_radius)
@@ -279,19 +294,6 @@ def make_scene(seed: int = 0, settings: SceneSettings = SceneSettings()) -> Synt
       light_direction=light_direction / np.linalg.norm(light_direction), ambient=settings.ambient,
       background_color=np.asarray(settings.background_color, np.float64),
       scene_bounds=_scene_bounds((ground,) + objects))
-
-
-def _check_settings(settings: SceneSettings) -> None:
-  """Rejects settings whose objects cannot fit: radii out of order, or a scene outside the
-  unit box."""
-  minimum_radius, maximum_radius = settings.object_radius_range
-  if not 0 < minimum_radius <= maximum_radius:
-    raise InputError(f"need 0 < min <= max, got {settings.object_radius_range}",
-                     field="synthetic_scene.object_radius_range")
-  # Tall shapes reach 3x their radius; with the margin everything must stay inside [-1, 1]^3.
-  if settings.ground_half_size + BOUNDS_MARGIN > 1 or 3 * maximum_radius + BOUNDS_MARGIN > 1:
-    raise InputError("the scene would leave the unit box [-1, 1]^3",
-                     field="synthetic_scene.ground_half_size / object_radius_range")
 
 
 @dataclasses.dataclass

@@ -12,21 +12,25 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import typing
 from pathlib import Path
+from typing import Annotated, Literal
 
 import jax
 import numpy as np
 
-from signerf_jax import camera
+from signerf_jax import camera, validation
 from signerf_jax import files
 from signerf_jax.data import nerfstudio, nerfstudio_writer
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data import raycast
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.data.synthetic import SceneSettings, SyntheticScene, make_scene
-from signerf_jax.errors import InputError
+from signerf_jax.validation import PositiveFloat, PositiveInt, Range
 
-CAMERA_LAYOUTS = ("sphere", "hemisphere", "forward_facing")
+CameraLayout = Literal["sphere", "hemisphere", "forward_facing"]
+CAMERA_LAYOUTS = typing.get_args(CameraLayout)
+Elevation = Annotated[float, Range(-90, 90)]
 SCENE_FILE_NAME = "scene.json"
 # The generator datasets record in their provenance (the name it had before the renderer and
 # writer moved out of `synthetic`).
@@ -52,24 +56,21 @@ class CameraRig:
     distance: from the cameras to the centre.
   """
 
-  layout: str = "hemisphere"
-  num_views: int = 40
-  image_size: int = 64
-  field_of_view_degrees: float = 50.0
-  distance: float = 2.8
-  elevation_range_degrees: tuple[float, float] = (15.0, 70.0)
-  arc_degrees: float = 120.0
+  layout: CameraLayout = "hemisphere"
+  num_views: PositiveInt = 40
+  image_size: PositiveInt = 64
+  field_of_view_degrees: Annotated[float, Range(0, 180, low_inclusive=False,
+                                                high_inclusive=False)] = 50.0
+  distance: PositiveFloat = 2.8
+  elevation_range_degrees: tuple[Elevation, Elevation] = (15.0, 70.0)
+  arc_degrees: Annotated[float, Range(0, 360, low_inclusive=False)] = 120.0
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 def make_cameras(rig: CameraRig, scene_bounds) -> camera.Cameras:
   """The rig's cameras, all looking at the centre of `scene_bounds` ([2, 3]), z up."""
-  if rig.layout not in CAMERA_LAYOUTS:
-    raise InputError(f"must be one of {CAMERA_LAYOUTS}, got {rig.layout!r}",
-                     field="synthetic_cameras.layout")
-  if (rig.num_views < 1 or rig.image_size < 1 or not 0 < rig.field_of_view_degrees < 180
-      or rig.distance <= 0):
-    raise InputError("need num_views >= 1, image_size >= 1, 0 < field_of_view_degrees < 180 "
-                     "and distance > 0", field="synthetic_cameras")
   num_views = rig.num_views
   target = np.mean(np.asarray(scene_bounds, np.float64), axis=0)
   fraction = (np.arange(num_views) + 0.5) / num_views

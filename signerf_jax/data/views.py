@@ -81,7 +81,7 @@ def resize(array: np.ndarray, width: int, height: int, method: str) -> np.ndarra
 
 def read_view(read: Callable[[Path], np.ndarray], path: str | os.PathLike, field: str, *,
               file_size: tuple[int, int], target_size: tuple[int, int], method: str,
-              size_tolerance: int = 0) -> np.ndarray:
+              size_tolerance: int = 0, size_source: str = "the cameras") -> np.ndarray:
   """Reads one per-view file, checks its size and resamples it to the size the cameras use.
 
   Args:
@@ -92,8 +92,10 @@ def read_view(read: Callable[[Path], np.ndarray], path: str | os.PathLike, field
     method: resampling method for `resize`.
     size_tolerance: pixels the file may be off `file_size` (pre-downscaled folders round their
       sizes either way).
+    size_source: where `file_size` comes from, for errors (e.g. "poses_bounds.npy's hwf").
   Raises:
-    InputError: a missing or unreadable file, or one of the wrong size (mixed image sizes).
+    InputError: a missing or unreadable file, or one of another size than the cameras give
+      (either the file or the camera size is wrong; the message names both).
   """
   try:
     array = read(Path(path))
@@ -103,8 +105,9 @@ def read_view(read: Callable[[Path], np.ndarray], path: str | os.PathLike, field
     raise InputError(error.problem, error.path, field) from None
   height, width = array.shape[:2]
   if max(abs(width - file_size[0]), abs(height - file_size[1])) > size_tolerance:
-    raise InputError(f"is {width}x{height} pixels but {file_size[0]}x{file_size[1]} was expected "
-                     "(all images of a dataset must share one size)", path, field)
+    raise InputError(f"is {width}x{height} pixels, not the {file_size[0]}x{file_size[1]} of "
+                     f"{size_source}: the file or the camera size is wrong (every view of a "
+                     "dataset has the size of its camera)", path, field)
   return resize(array, *target_size, method)
 
 

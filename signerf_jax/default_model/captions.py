@@ -19,7 +19,6 @@ import gin
 import numpy as np
 
 from signerf_jax.clip import word_tokenizer
-from signerf_jax.default_model import appearance
 from signerf_jax.default_model import objects
 from signerf_jax.metrics import colors
 

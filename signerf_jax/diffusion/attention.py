@@ -18,7 +18,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from signerf_jax import validation
 from signerf_jax.diffusion.layers import Conv2d, Dtype, GroupNorm, LayerNorm, Linear
+from signerf_jax.validation import NonNegativeInt, PositiveInt
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,8 +36,11 @@ class AttentionOptions:
       on CPU is also the faster one from a few hundred tokens up (e.g. 2x for 4,096 queries
       against 77 text tokens).
   """
-  query_chunk_size: int = 1024
-  max_plain_scores: int = 2**18
+  query_chunk_size: PositiveInt = 1024
+  max_plain_scores: NonNegativeInt = 2**18
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,

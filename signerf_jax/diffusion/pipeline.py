@@ -27,19 +27,23 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Annotated, Any, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from signerf_jax import validation
 from signerf_jax.clip import text as clip_text
-from signerf_jax.clip.tokenizer import Tokenizer
+from signerf_jax.clip.tokenizer import Tokenizer, load_tokenizer
 from signerf_jax.diffusion import guidance as guidance_lib
-from signerf_jax.diffusion import pipeline_components, sampler, schedulers, solvers
+from signerf_jax.diffusion import (model_configs, pipeline_components, sampler, schedulers,
+                                   solvers)
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.layers import Dtype
 from signerf_jax.errors import InputError
+from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, PositiveInt, Range,
+                                    UnitInterval)
 
 
 
@@ -122,6 +126,35 @@ def load_pipeline(path: str | os.PathLike | None = None, *,
                   bool(components.options.get("force_zeros_for_empty_prompt", True)))
 
 
+def check_pipeline(path: str | os.PathLike, *, controlnet: str | os.PathLike | None = None,
+                   scheduler_kind: str | None = None) -> tuple[Tokenizer, ...]:
+  """Checks what `load_pipeline(path, controlnet=..., scheduler_kind=...)` needs without reading
+  any weights (a second, not the minutes a large checkpoint takes to load): every needed
+  component is found, and the UNet, VAE, ControlNet and scheduler configurations and the
+  tokenizers parse.
+
+  Returns:
+    the pipeline's tokenizers (small; e.g. to check a prompt's words).
+  Raises:
+    InputError as `load_pipeline` would, naming the file and field.
+  """
+  components = pipeline_components.find_components(Path(path), {"controlnet": controlnet})
+  parsers = {"unet": model_configs.UNetConfig, "vae": model_configs.AutoencoderConfig,
+             "controlnet": model_configs.ControlNetConfig}
+  configs = {}
+  for name, parser in parsers.items():
+    if name == "controlnet" and name not in components.directories:
+      continue
+    directory = model_configs.component_directory(components.require(name), name)
+    configs[name] = parser.from_dict(model_configs.read_config(directory),
+                                     directory / "config.json")
+  sdxl = configs["unet"].addition_embed_type == "text_time"
+  tokenizers = tuple(load_tokenizer(components.require(name))
+                     for name in (("tokenizer_2",) if sdxl else ("tokenizer",)))
+  schedulers.load_scheduler_config(components.require("scheduler"), scheduler_kind)
+  return tokenizers
+
+
 def encode_prompts(pipeline: Pipeline, prompts: str | Sequence[str],
                    negative_prompts: str | Sequence[str] | None = None, *,
                    prompts_2: str | Sequence[str] | None = None,
@@ -166,18 +199,28 @@ class GenerationOptions:
     original_size, crops_coords_top_left, target_size: SDXL's size conditioning in pixels
       (height, width) / (top, left); None sizes default to the image size.
   """
-  num_inference_steps: int = 20
-  strength: float = 1.0
-  guidance_scale: float = 7.5
-  controlnet_conditioning_scale: float = 1.0
-  control_guidance_start: float = 0.0
-  control_guidance_end: float = 1.0
+  num_inference_steps: PositiveInt = 20
+  strength: Annotated[float, Range(0, 1, low_inclusive=False)] = 1.0
+  guidance_scale: NonNegativeFloat = 7.5
+  controlnet_conditioning_scale: NonNegativeFloat = 1.0
+  control_guidance_start: UnitInterval = 0.0
+  control_guidance_end: UnitInterval = 1.0
   guess_mode: bool = False
   paste_back: bool = False
-  mask_blur: float = 0.0
-  original_size: tuple[int, int] | None = None
-  crops_coords_top_left: tuple[int, int] = (0, 0)
-  target_size: tuple[int, int] | None = None
+  mask_blur: NonNegativeFloat = 0.0
+  original_size: tuple[PositiveInt, PositiveInt] | None = None
+  crops_coords_top_left: tuple[NonNegativeInt, NonNegativeInt] = (0, 0)
+  target_size: tuple[PositiveInt, PositiveInt] | None = None
+
+  def __post_init__(self):
+    validation.check_fields(self)
+    if int(self.num_inference_steps * self.strength) < 1:
+      raise InputError(f"strength {self.strength} of {self.num_inference_steps} steps leaves "
+                       "no step to run", field="GenerationOptions.strength")
+    if self.control_guidance_start >= self.control_guidance_end:
+      raise InputError(f"must be below control_guidance_end {self.control_guidance_end}, got "
+                       f"{self.control_guidance_start}",
+                       field="GenerationOptions.control_guidance_start")
 
 
 def sdxl_time_ids(height: int, width: int, options: GenerationOptions) -> np.ndarray:

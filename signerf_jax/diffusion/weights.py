@@ -113,12 +113,12 @@ def load_params(module: nn.Module, directory: str | os.PathLike, dtype=np.float3
   Args:
     rename: optional rewrite of legacy tensor names before checking (the VAE's old attention).
   """
-  directory = Path(directory)
-  tensors = safetensors_io.read_safetensors(safetensors_io.find_weight_files(directory, variant),
-                                            dtype)
+  paths = safetensors_io.find_weight_files(Path(directory), variant)
+  tensors = safetensors_io.read_safetensors(paths, dtype)
   if rename is not None:
     tensors = rename(tensors)
-  return params_from_tensors(module, tensors, directory, dtype)
+  # Errors name the weights file, or the directory when the weights are sharded over several.
+  return params_from_tensors(module, tensors, paths[0] if len(paths) == 1 else directory, dtype)
 
 
 def random_params(module: nn.Module, seed: int = 0, dtype=np.float32) -> dict:

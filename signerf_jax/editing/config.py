@@ -23,8 +23,9 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Annotated, Any, Literal, Mapping
 
+from signerf_jax import validation
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.errors import InputError
@@ -32,12 +33,16 @@ from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings
 from signerf_jax.nerf.capacity import CapacityRules
 from signerf_jax.nerf.train import TrainConfig
+from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt,
+                                    Range, UnitInterval, Vector3)
 
 # The shipped model (diffusers layout), trained by the project (see default_model/). A path,
 # not an import: default_model sits above the library (it trains with the editing code).
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[1] / "default_model" / "weights"
-SELECTION_KINDS = ("box", "proxy")
-NERF_UPDATES = ("auto", "finetune", "retrain")
+SelectionKind = Literal["box", "proxy"]
+NerfUpdate = Literal["auto", "finetune", "retrain"]
+# A scheduler class replacing the checkpoint's ("" keeps it).
+SchedulerOverride = Literal["", "ddim", "dpm_solver_multistep", "euler_ancestral"]  # "" first
 PRIMITIVE_PREFIX = "primitive:"
 # The NeRF runs of an edit, each with its own TrainConfig (gin scope of the same name).
 TRAINING_RUNS = ("original", "finetune", "retrain")
@@ -69,31 +74,29 @@ class EditConfig:
     second_iteration: run steps 4-7 once more from the edited NeRF (paper, step 8), with the
       `second_iteration/GenerationOptions` settings.
     second_sheet: the sheet recipe of the second iteration ("": str(seed)).
+    strict_prompt: a prompt word the model's tokenizer does not know is an error (by default
+      a warning naming the words it knows).
   """
 
   data: str = ""
-  downscale: int = 1
+  downscale: PositiveInt = 1
   original_run: str = ""
   prompt: str = ""
   negative_prompt: str = ""
-  seed: int = 0
+  seed: NonNegativeInt = 0
   sheet: str = ""
   model: str = str(DEFAULT_MODEL_DIR)
   controlnet: str = ""
-  scheduler_kind: str = ""
-  nerf_update: str = "auto"
+  scheduler_kind: SchedulerOverride = ""
+  nerf_update: NerfUpdate = "auto"
   second_iteration: bool = False
   second_sheet: str = ""
+  strict_prompt: bool = False
 
   def __post_init__(self):
+    validation.check_fields(self)
     if not self.prompt.strip():
       raise InputError("an edit needs a prompt", field="EditConfig.prompt")
-    if self.nerf_update not in NERF_UPDATES:
-      raise InputError(f"must be one of {NERF_UPDATES}, got {self.nerf_update!r}",
-                       field="EditConfig.nerf_update")
-    if isinstance(self.downscale, bool) or self.downscale < 1:
-      raise InputError(f"must be a positive integer, got {self.downscale!r}",
-                       field="EditConfig.downscale")
 
   def sheet_recipe(self, iteration: int) -> str:
     recipe = self.sheet if iteration == 1 else self.second_sheet
@@ -131,32 +134,27 @@ class SelectionConfig:
     min_mask_pixels: views with fewer mask pixels are not edited (reported).
   """
 
-  kind: str = "box"
-  box_min: tuple[float, float, float] | None = None
-  box_max: tuple[float, float, float] | None = None
-  box_mask_mode: str = "surface"
+  kind: SelectionKind = "box"
+  box_min: Vector3 | None = None
+  box_max: Vector3 | None = None
+  box_mask_mode: Literal["surface", "silhouette"] = "surface"
   proxy: str = ""
-  scale: float = 1.0
-  rotation_degrees: tuple[float, float, float] = (0.0, 0.0, 0.0)
-  translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
-  ground_position: tuple[float, float, float] | None = None
-  ground_size: float = 0.5
+  scale: PositiveFloat = 1.0
+  rotation_degrees: Vector3 = (0.0, 0.0, 0.0)
+  translation: Vector3 = (0.0, 0.0, 0.0)
+  ground_position: Vector3 | None = None
+  ground_size: PositiveFloat = 0.5
   heading_degrees: float = 0.0
-  mesh_up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-  up: tuple[float, float, float] | None = None
-  frame: str = "source"
-  dilation_radius: float = 24.0
-  feather_radius: float = 8.0
-  min_accumulation: float = 0.5
-  min_mask_pixels: int = 1
+  mesh_up: Vector3 = (0.0, 1.0, 0.0)
+  up: Vector3 | None = None
+  frame: Literal["scene", "source"] = "source"
+  dilation_radius: NonNegativeFloat = 24.0
+  feather_radius: NonNegativeFloat = 8.0
+  min_accumulation: UnitInterval = 0.5
+  min_mask_pixels: NonNegativeInt = 1
 
   def __post_init__(self):
-    if self.kind not in SELECTION_KINDS:
-      raise InputError(f"must be one of {SELECTION_KINDS}, got {self.kind!r}",
-                       field="SelectionConfig.kind")
-    if self.frame not in ("scene", "source"):
-      raise InputError(f"must be 'scene' or 'source', got {self.frame!r}",
-                       field="SelectionConfig.frame")
+    validation.check_fields(self)
     if self.kind == "box" and (self.box_min is None or self.box_max is None):
       raise InputError("a box selection needs box_min and box_max (--box)", field="box")
     if self.kind == "proxy" and not self.proxy:
@@ -180,15 +178,18 @@ class SheetConfig:
     crop_margin, crop_max_upscale: see `crops.selection_crop_boxes`.
   """
 
-  rows: int = 2
-  columns: int = 3
+  rows: PositiveInt = 2
+  columns: PositiveInt = 3
   slot_row: int = -1
   slot_column: int = -1
-  tile_size: int | None = None
+  tile_size: PositiveInt | None = None
   reference_cameras: str = ""
   crops: bool = False
-  crop_margin: float = 0.15
-  crop_max_upscale: float = 2.0
+  crop_margin: NonNegativeFloat = 0.15
+  crop_max_upscale: PositiveFloat = 2.0
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -200,8 +201,11 @@ class PreviewConfig:
     recipes: further sheet recipes, e.g. re-rolls "2/1,4@7" of tiles of a candidate.
   """
 
-  seeds: tuple[int, ...] = (0, 1, 2, 3)
+  seeds: tuple[NonNegativeInt, ...] = (0, 1, 2, 3)
   recipes: tuple[str, ...] = ()
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,7 +218,10 @@ class UpdateConfig:
       program the same whatever the device count.
   """
 
-  views_per_device: int = 4
+  views_per_device: PositiveInt = 4
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,15 +242,13 @@ class FinetuneConfig:
   """
 
   lpips_weights: str = ""
-  lpips_weight: float = 0.1
-  patch_size: int = 32
+  lpips_weight: NonNegativeFloat = 0.1
+  patch_size: Annotated[int, Range(16)] = 32
   edit_region: bool = True
-  region_margin: float = 0.25
+  region_margin: NonNegativeFloat = 0.25
 
   def __post_init__(self):
-    if not self.region_margin >= 0:
-      raise InputError(f"must be >= 0, got {self.region_margin!r}",
-                       field="FinetuneConfig.region_margin")
+    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,9 +266,12 @@ class EvaluationConfig:
 
   clip_model: str = ""
   source_caption: str = "a photo of a scene"
-  independent_views: int = 12
-  video_frames: int = 48
-  video_fps: int = 12
+  independent_views: NonNegativeInt = 12
+  video_frames: NonNegativeInt = 48
+  video_fps: PositiveInt = 12
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,13 +17,14 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from signerf_jax import configs, files
+from signerf_jax import configs, files, validation
 from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.editing import commands
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR, PRIMITIVE_PREFIX
 from signerf_jax.errors import InputError
+from signerf_jax.validation import NonNegativeInt, Range
 
 SPOT_COW = Path(synthetic.DEFAULT_MESH_DIRECTORY) / "spot" / "spot_triangulated.obj"
 
@@ -40,9 +41,12 @@ class DemoSettings:
   """
 
   prompt: str = "a red cow"
-  scene_seed: int = 0
-  cow_size_fraction: float = 0.9
+  scene_seed: NonNegativeInt = 0
+  cow_size_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 0.9
   heading_degrees: float = 30.0
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -27,8 +27,9 @@ import hashlib
 import json
 import os
 import time
+import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -82,10 +83,7 @@ class EditDirectory:
     path = self.root / STAGES_FILE
     if not path.is_file():
       return {}
-    records = files.read_json(path)
-    if not isinstance(records, dict):
-      raise InputError("expected a JSON object of stage records", path)
-    return records
+    return files.read_json(path)
 
   def record(self, stage: str) -> StageRecord | None:
     entry = self._records().get(stage)
@@ -119,12 +117,27 @@ def save_arrays(path: str | os.PathLike, **arrays: np.ndarray) -> None:
       np.savez(handle, **arrays)
 
 
-def load_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+def load_arrays(path: str | os.PathLike, required: Sequence[str] = ()) -> dict[str, np.ndarray]:
+  """The arrays of a stage's .npz output.
+
+  Raises:
+    InputError naming the file: missing, unreadable (truncated, not a .npz, pickled objects) or
+      without one of the `required` arrays.
+  """
   path = Path(path)
   if not path.is_file():
     raise InputError("stage output not found (run the earlier stages first)", path)
-  with np.load(path) as data:
-    return {name: data[name] for name in data.files}
+  try:
+    with np.load(path, allow_pickle=False) as data:
+      arrays = {name: data[name] for name in data.files}
+  except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+    raise InputError(f"damaged stage output ({type(error).__name__}: {error}); run its stage "
+                     "again (--redo STAGE)", path) from None
+  missing = [name for name in required if name not in arrays]
+  if missing:
+    raise InputError(f"damaged stage output: no {missing} arrays; run its stage again "
+                     "(--redo STAGE)", path)
+  return arrays
 
 
 def directory_fingerprint(directory: str | os.PathLike) -> dict[str, Any]:

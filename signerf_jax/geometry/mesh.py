@@ -102,7 +102,8 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
   if isinstance(loaded, trimesh.Scene):
     parts = [geometry for geometry in loaded.dump() if isinstance(geometry, trimesh.Trimesh)]
     if not parts:
-      raise InputError("scene contains no triangle mesh", path, "faces")
+      raise InputError("no triangles could be read: not a mesh file of this format, or one "
+                       "without faces", path, "faces")
     loaded = trimesh.util.concatenate(parts)
   if not isinstance(loaded, trimesh.Trimesh):
     raise InputError(f"contains a {type(loaded).__name__}, not a triangle mesh", path, "faces")

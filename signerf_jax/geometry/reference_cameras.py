@@ -24,13 +24,15 @@ heavy.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Annotated, Any
 
 import jax
 import numpy as np
 
 from signerf_jax import camera as camera_lib
+from signerf_jax import validation
 from signerf_jax.errors import InputError
+from signerf_jax.validation import OpenUnitInterval, PositiveInt, Range, Vector3
 
 # Compiled once per shape instead of dispatching many tiny operations one by one.
 _project = jax.jit(camera_lib.project)
@@ -186,17 +188,15 @@ class ReferencePlacement:
     min_arc_degrees: the azimuth arc (degrees) used when the dataset cameras cover less.
   """
 
-  up: tuple[float, float, float] | None = None
-  neighbours: int = 3
-  min_fill: float = 0.25
-  max_fill: float = 0.6
-  min_arc_degrees: float = 30.0
+  up: Vector3 | None = None
+  neighbours: PositiveInt = 3
+  min_fill: OpenUnitInterval = 0.25
+  max_fill: OpenUnitInterval = 0.6
+  min_arc_degrees: Annotated[float, Range(0, 360, low_inclusive=False)] = 30.0
 
   def __post_init__(self):
-    if self.neighbours < 1:
-      raise InputError(f"need at least one, got {self.neighbours}",
-                       field="ReferencePlacement.neighbours")
-    if not 0 < self.min_fill <= self.max_fill < 1:
+    validation.check_fields(self)
+    if not self.min_fill <= self.max_fill:
       raise InputError(f"need 0 < min_fill <= max_fill < 1, got {self.min_fill}, "
                        f"{self.max_fill}", field="ReferencePlacement.min_fill")
 

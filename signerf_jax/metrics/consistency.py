@@ -29,16 +29,18 @@ to this project's (centres at +0.5) before any camera geometry.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
 
 from signerf_jax import camera as camera_lib
-from signerf_jax import lens
+from signerf_jax import lens, validation
 from signerf_jax.errors import InputError
+from signerf_jax.validation import (NonNegativeInt, OpenUnitInterval, PositiveFloat, PositiveInt,
+                                    Range)
 
-NEIGHBOUR_MODES = ("distance", "angle", "index")
+NeighbourMode = Literal["distance", "angle", "index"]
 # The 8-point algorithm inside RANSAC needs at least eight correspondences.
 MIN_MATCHES_FOR_FUNDAMENTAL = 8
 
@@ -48,7 +50,7 @@ class ConsistencySettings:
   """How views are paired, matched and verified (gin: `consistency.<field>`).
 
   Attributes:
-    neighbours: one of NEIGHBOUR_MODES (see the module docstring).
+    neighbours: "distance", "angle" or "index" (see the module docstring).
     num_neighbours: neighbours per view (pairs are de-duplicated).
     ratio: Lowe's ratio test: keep a match if its distance < ratio * the second best's.
     ransac_threshold_pixels, ransac_confidence, ransac_iterations: `cv2.findFundamentalMat`.
@@ -57,23 +59,18 @@ class ConsistencySettings:
     max_keypoints: SIFT's `nfeatures` (0: all).
   """
 
-  neighbours: str = "distance"
-  num_neighbours: int = 2
-  ratio: float = 0.75
-  ransac_threshold_pixels: float = 1.0
-  ransac_confidence: float = 0.999
-  ransac_iterations: int = 2000
-  epipolar_threshold_pixels: float = 1.0
-  mask_dilation_pixels: int = 8
-  max_keypoints: int = 0
+  neighbours: NeighbourMode = "distance"
+  num_neighbours: PositiveInt = 2
+  ratio: Annotated[float, Range(0, 1, low_inclusive=False)] = 0.75
+  ransac_threshold_pixels: PositiveFloat = 1.0
+  ransac_confidence: OpenUnitInterval = 0.999
+  ransac_iterations: PositiveInt = 2000
+  epipolar_threshold_pixels: PositiveFloat = 1.0
+  mask_dilation_pixels: NonNegativeInt = 8
+  max_keypoints: NonNegativeInt = 0
 
   def __post_init__(self):
-    if self.neighbours not in NEIGHBOUR_MODES:
-      raise InputError(f"must be one of {NEIGHBOUR_MODES}, got {self.neighbours!r}",
-                       field="consistency.neighbours")
-    if self.num_neighbours < 1 or not 0 < self.ratio <= 1 or self.mask_dilation_pixels < 0:
-      raise InputError("need num_neighbours >= 1, 0 < ratio <= 1, mask_dilation_pixels >= 0",
-                       field="consistency")
+    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)

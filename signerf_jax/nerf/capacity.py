@@ -19,14 +19,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Mapping
+from typing import Annotated, Any, Mapping
 
 import numpy as np
 
 from signerf_jax import camera as camera_lib
+from signerf_jax import validation
 from signerf_jax.data import poses
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import sampling
+from signerf_jax.validation import PositiveFloat, PositiveInt, Range
 
 
 def camera_distances(bounds, cameras) -> np.ndarray:
@@ -258,23 +260,21 @@ class CapacityRules:
       jit argument, only the `Capacity` they produce is.)
   """
 
-  oversampling: float = 1.0
-  base_resolution: int = 16
-  level_growth: float = 1.5
-  features_per_level: int = 2
-  max_log2_table_size: int = 19
-  table_rows_per_surface_cell: float = 4.0
-  steps_per_finest_cell: float = 1.0
-  rays_per_batch: int | None = None
-  samples_per_batch: int = 65536
-  sample_groups: int = 8
+  oversampling: PositiveFloat = 1.0
+  base_resolution: PositiveInt = 16
+  level_growth: Annotated[float, Range(1, low_inclusive=False)] = 1.5
+  features_per_level: PositiveInt = 2
+  max_log2_table_size: Annotated[int, Range(12, 30)] = 19
+  table_rows_per_surface_cell: PositiveFloat = 4.0
+  steps_per_finest_cell: PositiveFloat = 1.0
+  rays_per_batch: PositiveInt | None = None
+  samples_per_batch: PositiveInt = 65536
+  sample_groups: PositiveInt = 8
   appearance_embedding: bool | None = None
   overrides: Mapping[str, Any] | None = None
 
   def __post_init__(self):
-    if self.level_growth <= 1:
-      raise InputError(f"must exceed 1, got {self.level_growth}",
-                       field="CapacityRules.level_growth")
+    validation.check_fields(self)
     unknown = sorted(set(self.overrides or {}) - {field.name for field in
                                                   dataclasses.fields(Capacity)})
     if unknown:

@@ -25,12 +25,13 @@ import optax
 from flax import struct
 from jax.sharding import Mesh
 
-from signerf_jax import camera, parallel
+from signerf_jax import camera, parallel, validation
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import losses
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.encoding import level_weights_at
+from signerf_jax.validation import NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,21 +59,24 @@ class TrainConfig:
     seed: PRNG seed of the run.
   """
 
-  steps: int = 5000
-  max_seconds: float | None = None
-  learning_rate: float = 1e-2
-  pose_learning_rate: float = 6e-4
-  final_learning_rate: float = 1e-3
-  warmup_steps: int = 50
-  gradient_clip_norm: float = 1.0
-  adam_eps: float = 1e-15
-  occupancy_update_every: int = 16
-  occupancy_warmup_steps: int = 32
-  interlevel_loss_weight: float = 1.0
-  distortion_loss_weight: float = 0.002
-  checkpoint_every_steps: int = 1000
-  checkpoint_every_seconds: float = 120.0
-  seed: int = 0
+  steps: PositiveInt = 5000
+  max_seconds: PositiveFloat | None = None
+  learning_rate: PositiveFloat = 1e-2
+  pose_learning_rate: NonNegativeFloat = 6e-4
+  final_learning_rate: PositiveFloat = 1e-3
+  warmup_steps: NonNegativeInt = 50
+  gradient_clip_norm: PositiveFloat = 1.0
+  adam_eps: PositiveFloat = 1e-15
+  occupancy_update_every: PositiveInt = 16
+  occupancy_warmup_steps: NonNegativeInt = 32
+  interlevel_loss_weight: NonNegativeFloat = 1.0
+  distortion_loss_weight: NonNegativeFloat = 0.002
+  checkpoint_every_steps: PositiveInt = 1000
+  checkpoint_every_seconds: PositiveFloat = 120.0
+  seed: NonNegativeInt = 0
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 @struct.dataclass

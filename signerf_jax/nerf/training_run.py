@@ -190,6 +190,7 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
   trainer = make_trainer(dataset, model=model, config=config, init_variables=init_variables,
                          pixel_weights=pixel_weights, capacity_rules=capacity_rules)
   run_dir.mkdir(parents=True, exist_ok=True)
+  files.remove_temporaries(run_dir)  # Left by a run killed mid-write.
   if checkpoints.has_checkpoint(run_dir):
     trainer.restore(run_dir)
   else:

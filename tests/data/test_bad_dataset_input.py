@@ -149,7 +149,7 @@ def test_missing_training_image_names_file_and_frame(written):
 
 def test_image_of_a_different_size_names_file_and_frame(written):
   files.write_image(written.parent / "images" / "frame_00003.png", np.zeros((9, 10, 3)))
-  with pytest.raises(InputError, match="10x9 pixels but 12x9") as error:
+  with pytest.raises(InputError, match="is 10x9 pixels, not the 12x9 of transforms.json's w and h") as error:
     load_dataset(written.parent, split="all")
   assert error.value.path.endswith("frame_00003.png")
   assert error.value.field == "frames[3].file_path"

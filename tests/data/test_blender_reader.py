@@ -74,7 +74,7 @@ def test_blender_bad_field_of_view(tmp_path, angle):
 def test_blender_images_of_mixed_sizes(tmp_path):
   write_blender_scene(tmp_path)
   files.write_image(tmp_path / "train" / "r_1.png", np.zeros((8, 6, 4)))
-  with pytest.raises(InputError, match="6x8 pixels but 8x8") as error:
+  with pytest.raises(InputError, match="is 6x8 pixels, not the 8x8 of the first image") as error:
     load_dataset(tmp_path)
   assert error.value.path.endswith("r_1.png")
   assert "frames[1].file_path" in error.value.field

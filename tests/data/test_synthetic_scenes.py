@@ -187,19 +187,24 @@ def test_camera_layouts_look_at_the_scene_centre(layout):
     assert azimuth.max() - azimuth.min() == pytest.approx(120 * 19 / 20, abs=1e-3)
 
 
-@pytest.mark.parametrize("settings, rig, field", [
-    (synthetic.SceneSettings(num_primitives=40), TINY_RIG, "synthetic_scene"),
-    (synthetic.SceneSettings(ground_half_size=1.0), TINY_RIG, "synthetic_scene.ground_half_size"),
-    (synthetic.SceneSettings(object_radius_range=(0.3, 0.2)), TINY_RIG,
-     "synthetic_scene.object_radius_range"),
-    (synthetic.SceneSettings(), synthetic_render.CameraRig(layout="spiral"),
-     "synthetic_cameras.layout"),
-    (synthetic.SceneSettings(), synthetic_render.CameraRig(num_views=0), "synthetic_cameras"),
+@pytest.mark.parametrize("make, field", [
+    (lambda: synthetic.SceneSettings(ground_half_size=1.0), "SceneSettings.ground_half_size"),
+    (lambda: synthetic.SceneSettings(object_radius_range=(0.3, 0.2)),
+     "SceneSettings.object_radius_range"),
+    (lambda: synthetic_render.CameraRig(layout="spiral"), "CameraRig.layout"),
+    (lambda: synthetic_render.CameraRig(num_views=0), "CameraRig.num_views"),
 ])
-def test_bad_generator_settings(tmp_path, settings, rig, field):
+def test_bad_generator_settings_are_refused_when_built(make, field):
   with pytest.raises(InputError) as error:
-    synthetic_render.generate(tmp_path, 0, dataclasses.replace(settings, num_meshes=0), rig)
-  assert error.value.field.startswith(field)
+    make()
+  assert error.value.field == field
+
+
+def test_a_scene_too_crowded_to_place_names_its_settings(tmp_path):
+  settings = synthetic.SceneSettings(num_primitives=40, num_meshes=0)
+  with pytest.raises(InputError) as error:
+    synthetic_render.generate(tmp_path, 0, settings, TINY_RIG)
+  assert error.value.field.startswith("synthetic_scene")
 
 
 def test_synthesize_command_writes_the_scene_and_its_config(tmp_path, capsys):

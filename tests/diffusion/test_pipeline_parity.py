@@ -360,7 +360,7 @@ def test_generate_checks_its_inputs(checkpoints, inputs):
   with pytest.raises(InputError, match="exactly when the pipeline has a ControlNet"):
     pipeline_lib.generate(pipeline, prompt, inputs["image"], inputs["mask"], None,
                           key=jax.random.key(0))
-  with pytest.raises(InputError, match="control guidance"):
+  with pytest.raises(InputError, match="control_guidance_start"):
     pipeline_lib.generate(pipeline, prompt, inputs["image"], inputs["mask"], inputs["control"],
                           key=jax.random.key(0),
                           options=pipeline_lib.GenerationOptions(control_guidance_start=0.5,

@@ -16,6 +16,8 @@ from signerf_jax.editing import commands, stages
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import render, sampling
 
+REUSED = "reusing its earlier result"  # What a stage that is not run again says.
+
 
 def settings_of(chosen: list[str]):
   """The edit's settings from gin bindings, as the commands build them."""
@@ -67,6 +69,8 @@ def test_every_stage_runs_and_the_evaluation_is_written(finished_edit):
   metrics = files.read_json(directory / "evaluation" / "metrics.json")
   assert np.isfinite(metrics["background"]["psnr_paper"])
   assert set(metrics["consistency"]) >= {"original", "sheet_propagated", "independent"}
+  assert set(metrics["stage_seconds"]) == {"original", "select", "views", "reference", "preview",
+                                           "sheet", "update", "dataset", "finetune", "evaluate"}
   assert (directory / "preview" / "preview.png").is_file()
   assert (directory / "evaluation" / "before_after.png").is_file()
 
@@ -119,12 +123,12 @@ def test_a_rerun_skips_finished_stages_and_a_new_sheet_redoes_only_what_follows(
   lines = []
   stages.run_edit(directory, settings_of(chosen), until="sheet", progress=False,
                   log=lines.append)
-  assert all("done before" in line for line in lines), lines
+  assert all(REUSED in line for line in lines), lines
 
   lines = []
   stages.run_edit(directory, settings_of(chosen + ["EditConfig.sheet = '0/1@5'"]),
                   until="update", progress=False, log=lines.append)
-  redone = {line.split("] ")[1].split(":")[0] for line in lines if "done before" not in line}
+  redone = {line.split("] ")[1].split(":")[0] for line in lines if REUSED not in line}
   assert redone == {"sheet", "update"}, lines
   sheet = np.load(directory / "sheet" / "sheet.npz")
   assert str(sheet["recipe"]) == "0/1@5"
@@ -145,7 +149,7 @@ def test_without_an_edit_region_the_whole_nerf_is_fine_tuned(finished_edit):
   lines = []
   edit = stages.run_edit(directory, settings_of(chosen + ["FinetuneConfig.edit_region = False"]),
                          until="finetune", progress=False, log=lines.append)
-  redone = {line.split("] ")[1].split(":")[0] for line in lines if "done before" not in line}
+  redone = {line.split("] ")[1].split(":")[0] for line in lines if REUSED not in line}
   assert redone == {"finetune"}, lines
   assert edit.nerf(1).model.edit_region is None
 
@@ -154,7 +158,7 @@ def test_a_command_saves_the_bindings_that_a_later_command_reads_back(finished_e
   directory, _, chosen = finished_edit
   settings = settings_of(chosen)
   commands.run_command("edit", directory, progress=False)  # Every stage done before: fast.
-  assert "done before" in capsys.readouterr().err
+  assert REUSED in capsys.readouterr().err
   gin.clear_config()
   commands.parse_edit_config(directory, (), ())  # config.gin only, no bindings given.
   assert commands.edit_settings() == settings

@@ -125,7 +125,7 @@ def test_report_is_json_friendly():
 
 @pytest.mark.parametrize("fields, field", [
     ({"min_fill": 0.7, "max_fill": 0.6}, "ReferencePlacement.min_fill"),
-    ({"max_fill": 1.0}, "ReferencePlacement.min_fill"),
+    ({"max_fill": 1.0}, "ReferencePlacement.max_fill"),
     ({"neighbours": 0}, "ReferencePlacement.neighbours"),
 ])
 def test_bad_placement_is_an_input_error_naming_the_field(fields, field):

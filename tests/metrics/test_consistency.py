@@ -144,5 +144,5 @@ def test_neighbours_by_distance_and_angle():
   assert consistency.neighbour_pairs(
       4, consistency.ConsistencySettings(neighbours="index", num_neighbours=2)).tolist() == [
           [0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
-  with pytest.raises(InputError, match="consistency.neighbours"):
+  with pytest.raises(InputError, match="ConsistencySettings.neighbours"):
     consistency.ConsistencySettings(neighbours="random")

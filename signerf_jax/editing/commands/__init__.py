@@ -20,6 +20,7 @@ import argparse
 import json
 import sys
 import time
+import typing
 from pathlib import Path
 
 import gin
@@ -29,13 +30,15 @@ from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.editing import stages
 from signerf_jax.editing.config import (TRAINING_RUNS, EditConfig, EditSettings,
-                                        EvaluationConfig, FinetuneConfig, PreviewConfig,
-                                        SelectionConfig, SheetConfig, UpdateConfig)
+                                        EvaluationConfig, FinetuneConfig, NerfUpdate,
+                                        PreviewConfig, SchedulerOverride, SelectionConfig,
+                                        SheetConfig, UpdateConfig)
 from signerf_jax.errors import InputError
 from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings
 from signerf_jax.nerf.capacity import CapacityRules
 from signerf_jax.nerf.train import TrainConfig
+from signerf_jax.validation import argument_type
 
 # command -> the stage it runs up to.
 LAST_STAGE = {"edit": "evaluate", "preview": "preview", "update": "dataset",
@@ -54,44 +57,57 @@ def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--out", required=True, help="the edit directory (created or resumed)")
   data = parser.add_argument_group("inputs (saved in OUT/config.gin)")
   data.add_argument("--data", help="dataset directory (nerfstudio, Blender, LLFF)")
-  data.add_argument("--downscale", type=int, help="integer image downscale of the dataset")
+  data.add_argument("--downscale", type=argument_type(EditConfig, "downscale"),
+                    help="integer image downscale of the dataset")
   data.add_argument("--run", help="an already trained NeRF of the dataset (`signerf train`); "
                     "without it the edit trains one")
   data.add_argument("--prompt", help="what the edited region should show")
   data.add_argument("--negative_prompt", help="what it should not show")
-  data.add_argument("--seed", type=int, help="seed of the image set update (and default sheet)")
+  data.add_argument("--seed", type=argument_type(EditConfig, "seed"),
+                    help="seed of the image set update (and default sheet)")
   data.add_argument("--model", help="diffusers ControlNet inpainting pipeline directory, e.g. "
                     "SD 1.5 inpainting (default: the shipped model)")
   data.add_argument("--controlnet", help="diffusers ControlNet directory (depth or inpaint), "
                     "replacing the pipeline's")
-  data.add_argument("--scheduler", choices=("ddim", "dpm_solver_multistep", "euler_ancestral"),
+  data.add_argument("--scheduler", choices=typing.get_args(SchedulerOverride)[1:],
                     help="override the checkpoint's scheduler")
   where = parser.add_argument_group(
       "selection (the dataset's own world units unless SelectionConfig.frame)")
-  where.add_argument("--box", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+  where.add_argument("--box", type=argument_type(float), nargs=6,
+                     metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                      help="shape selection: axis-aligned box min and max corners")
   where.add_argument("--proxy", help="proxy selection: a mesh file or primitive:<box, sphere, "
                      "cylinder, capsule, cow>")
-  where.add_argument("--scale", type=float, help="proxy similarity transform: scale")
-  where.add_argument("--rotation", type=float, nargs=3, metavar=("RX", "RY", "RZ"),
+  where.add_argument("--scale", type=argument_type(SelectionConfig, "scale"),
+                     help="proxy similarity transform: scale")
+  where.add_argument("--rotation", type=argument_type(float), nargs=3, metavar=("RX", "RY", "RZ"),
                      help="proxy similarity transform: Euler angles in degrees (x, y, z)")
-  where.add_argument("--translation", type=float, nargs=3, metavar=("X", "Y", "Z"),
+  where.add_argument("--translation", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
                      help="proxy similarity transform: translation")
-  where.add_argument("--on_ground", type=float, nargs=3, metavar=("X", "Y", "Z"),
+  where.add_argument("--on_ground", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
                      help="instead stand the proxy upright with its footprint centred here")
-  where.add_argument("--size", type=float, help="with --on_ground: the proxy's largest side")
-  where.add_argument("--heading", type=float, help="with --on_ground: turn about up (degrees)")
-  where.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"),
+  where.add_argument("--size", type=argument_type(SelectionConfig, "ground_size"),
+                     help="with --on_ground: the proxy's largest side")
+  where.add_argument("--heading", type=argument_type(float),
+                     help="with --on_ground: turn about up (degrees)")
+  where.add_argument("--up", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
                      help="the up direction (default: the cameras' mean up)")
   how = parser.add_argument_group("how")
   how.add_argument("--sheet", help="the sheet recipe to propagate: SEED or SEED/TILE,TILE@SEED")
-  how.add_argument("--nerf_update", choices=("auto", "finetune", "retrain"),
+  how.add_argument("--nerf_update", choices=typing.get_args(NerfUpdate),
                    help="fine-tune the original NeRF or retrain (auto: retrain for proxies)")
   how.add_argument("--second_iteration", action="store_true", default=None,
                    help="run steps 4-7 once more from the edited NeRF")
+  how.add_argument("--strict", action="store_true", default=None,
+                   help="a prompt word the model does not know is an error, not a warning")
   how.add_argument("--lpips", help="VGG-LPIPS weights (safetensors) for the fine-tuning loss")
   how.add_argument("--clip", help="CLIP checkpoint directory for the directional similarity")
-  how.add_argument("--views_per_device", type=int, help="views inpainted per device at once")
+  how.add_argument("--views_per_device", type=argument_type(UpdateConfig, "views_per_device"),
+                   help="views inpainted per device at once")
+  how.add_argument("--max_seconds", type=argument_type(TrainConfig, "max_seconds"),
+                   help="time budget of each NeRF training of the edit (the original when the "
+                   "edit trains it, the fine-tune or retrain): it stops there, its learning-rate "
+                   "schedule spanning the budget; per run: <run>/TrainConfig.max_seconds")
   how.add_argument("--redo", action="append", default=[], metavar="STAGE",
                    help="run this stage (and those after it) again; repeatable")
   add_common_arguments(parser)
@@ -121,6 +137,7 @@ _FLAG_BINDINGS = {
     "sheet": ("EditConfig.sheet", None),
     "nerf_update": ("EditConfig.nerf_update", None),
     "second_iteration": ("EditConfig.second_iteration", None),
+    "strict": ("EditConfig.strict_prompt", None),
     "scale": ("SelectionConfig.scale", None),
     "rotation": ("SelectionConfig.rotation_degrees", None),
     "translation": ("SelectionConfig.translation", None),
@@ -141,6 +158,9 @@ def flag_bindings(args: argparse.Namespace) -> list[str]:
     value = getattr(args, flag, None)
     if value is not None:
       bindings.append(f"{binding} = {gin_value(convert(value) if convert else value)}")
+  if getattr(args, "max_seconds", None) is not None:
+    bindings += [f"{run}/TrainConfig.max_seconds = {gin_value(args.max_seconds)}"
+                 for run in TRAINING_RUNS]
   if getattr(args, "box", None) is not None:
     if getattr(args, "proxy", None) is not None:
       raise InputError("give either --box or --proxy", field="selection")

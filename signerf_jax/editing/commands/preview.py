@@ -5,11 +5,14 @@ from __future__ import annotations
 import argparse
 
 from signerf_jax.editing.commands import add_edit_arguments, gin_value, run_stages
+from signerf_jax.editing.config import PreviewConfig
+from signerf_jax.validation import argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   add_edit_arguments(parser)
-  parser.add_argument("--seeds", type=int, nargs="+", help="one candidate sheet per seed")
+  parser.add_argument("--seeds", type=argument_type(PreviewConfig, "seeds"), nargs="+",
+                      help="one candidate sheet per seed")
   parser.add_argument("--reroll", nargs="+", metavar="RECIPE",
                       help="re-rolled candidates, e.g. 2/1,4@7: sheet 2 with tiles 1 and 4 "
                       "generated again with seed 7, the other tiles kept")

@@ -161,8 +161,9 @@ class EditContext:
 
   def conditioning_of_views(self) -> conditioning_lib.Conditioning:
     """The training views' conditioning (all views)."""
+    names = [field.name for field in dataclasses.fields(conditioning_lib.Conditioning)]
     return conditioning_lib.Conditioning.stack(
-        [conditioning_lib.Conditioning(**load_arrays(self.view_path(index)))
+        [conditioning_lib.Conditioning(**load_arrays(self.view_path(index), names))
          for index in range(self.dataset.num_images)])
 
   def visible_views(self) -> np.ndarray:

@@ -17,6 +17,7 @@ import time
 from typing import Any
 
 import numpy as np
+import tqdm
 
 from signerf_jax import files
 from signerf_jax.clip import similarity as clip_similarity
@@ -132,11 +133,23 @@ def _figures(context: EditContext, iteration: int, nerfs, before, after) -> list
 
 
 def evaluate_edit(context: EditContext) -> str:
+  start = time.perf_counter()
+  config = context.settings.evaluation
+  parts = (["held-out renders", "adherence"] + ["independent edits"] * bool(
+      config.independent_views) + ["CLIP"] * bool(config.clip_model) + ["figures"])
+  bar = tqdm.tqdm(total=len(parts), desc="evaluate", unit="part", disable=not context.progress,
+                  dynamic_ncols=True, postfix=parts[0])
+
+  def part_done():
+    bar.update()
+    bar.set_postfix_str(parts[min(bar.n, len(parts) - 1)])
+
   iteration = 2 if context.settings.edit.second_iteration else 1
   original, edited_nerf = context.nerf(0), context.nerf(iteration)
   before = _held_out_conditioning(context, original)
   after = render.render_cameras(edited_nerf.model, edited_nerf.variables,
                                 context.eval_cameras)["rgb"]
+  part_done()
   metrics: dict[str, Any] = {"prompt": context.settings.edit.prompt,
                              "num_eval_views": context.eval_cameras.num_cameras}
   metrics["background"] = background.background_preservation(before.render, after,
@@ -146,13 +159,20 @@ def evaluate_edit(context: EditContext) -> str:
   originals, edited = context.dataset.images[visible], edited_images(context, iteration, visible)
   conditioned = context.conditioning_of_views().take(visible)
   metrics.update(_adherence(context, originals, edited, conditioned, before, after))
-  if context.settings.evaluation.independent_views:
+  part_done()
+  if config.independent_views:
     metrics.update(_consistency(context, visible, originals, edited, conditioned))
-  if context.settings.evaluation.clip_model:
+    part_done()
+  if config.clip_model:
     metrics["clip_directional_similarity"] = _clip_similarity(context, originals, edited, before,
                                                               after)
+    part_done()
   outputs = _figures(context, iteration, (original, edited_nerf), before, after)
-  metrics["stage_seconds"] = context.directory.stage_seconds()
+  part_done()
+  bar.close()
+  # This stage's own seconds too: the stage record is written only after it returns.
+  metrics["stage_seconds"] = {**context.directory.stage_seconds(),
+                              "evaluate": time.perf_counter() - start}
   metrics_path = context.directory.path("evaluation", "metrics.json")
   files.write_json(metrics_path, metrics)
   bg = metrics["background"]

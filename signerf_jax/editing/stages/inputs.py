@@ -7,19 +7,69 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tqdm
 
 from signerf_jax import files
+from signerf_jax.diffusion import pipeline
 from signerf_jax.editing import conditioning as conditioning_lib
 from signerf_jax.editing import select as select_lib
-from signerf_jax.editing.config import as_json
+from signerf_jax.editing.config import EditSettings, as_json
 from signerf_jax.editing.project import load_arrays, save_arrays
 from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.errors import InputError
 from signerf_jax.geometry import masks as masks_lib
 from signerf_jax.geometry import reference_cameras
 from signerf_jax.nerf import training_run
 
 # Dataset views are rendered and conditioned this many at a time.
 VIEWS_PER_CHUNK = 8
+
+
+def check_inputs(settings: EditSettings) -> list[str]:
+  """Checks the edit's inputs before any stage runs, so that a mistake surfaces in a second
+  rather than after the original NeRF has trained: the directories exist, the diffusion
+  model's configurations parse (`pipeline.check_pipeline`; weights are checked as they load),
+  the proxy mesh loads, and the model knows the prompt's words.
+
+  Returns:
+    warnings for the user: prompt words the model's tokenizer does not know (they would become
+    its unknown token), with the words it knows.
+  Raises:
+    InputError naming the file and the parameter; for unknown words too when
+    `EditConfig.strict_prompt`.
+  """
+  edit = settings.edit
+  for value, field in ((edit.data, "EditConfig.data"),
+                       (edit.original_run, "EditConfig.original_run"),
+                       (edit.controlnet, "EditConfig.controlnet"),
+                       (settings.evaluation.clip_model, "EvaluationConfig.clip_model")):
+    if value and not Path(value).is_dir():
+      raise InputError("directory not found", value, field)
+  for value, field in ((settings.sheet.reference_cameras, "SheetConfig.reference_cameras"),
+                       (settings.finetune.lpips_weights, "FinetuneConfig.lpips_weights")):
+    if value and not Path(value).is_file():
+      raise InputError("file not found", value, field)
+  try:
+    tokenizers = pipeline.check_pipeline(edit.model, controlnet=edit.controlnet or None,
+                                         scheduler_kind=edit.scheduler_kind or None)
+  except InputError as error:
+    raise InputError(error.problem, error.path or edit.model,
+                     error.field or "EditConfig.model") from None
+  if settings.selection.kind == "proxy":
+    select_lib.load_proxy(settings.selection.proxy)
+  warnings = []
+  for field, text in (("prompt", edit.prompt), ("negative_prompt", edit.negative_prompt)):
+    for tokenizer in tokenizers:
+      unknown = tokenizer.unknown_words(text)
+      if not unknown:
+        continue
+      known = getattr(tokenizer, "words", [])
+      problem = (f"the model does not know {', '.join(map(repr, unknown))} (it reads them as "
+                 f"its unknown token); it knows {len(known)} words: {' '.join(known)}")
+      if edit.strict_prompt:
+        raise InputError(problem, edit.model, f"EditConfig.{field}")
+      warnings.append(f"EditConfig.{field}: {problem}")
+  return warnings
 
 
 def original_settings(context: EditContext) -> dict[str, Any]:
@@ -62,6 +112,9 @@ def condition_views(context: EditContext) -> str:
   dataset, original = context.dataset, context.nerf(0)
   selection_config = context.settings.selection
   indices = np.arange(dataset.num_images)
+  finished = [index for index in indices if context.view_path(index).is_file()]
+  bar = tqdm.tqdm(total=len(indices), initial=len(finished), unit="view", desc="views",
+                  disable=not context.progress, dynamic_ncols=True)
   for start in range(0, len(indices), VIEWS_PER_CHUNK):
     chunk = [index for index in indices[start:start + VIEWS_PER_CHUNK]
              if not context.view_path(index).is_file()]
@@ -73,8 +126,11 @@ def condition_views(context: EditContext) -> str:
     for position, index in enumerate(chunk):
       save_arrays(context.view_path(index), **{name: array[position] for name, array
                                                in conditioned.arrays().items()})
-  mask_pixels = np.asarray([np.count_nonzero(load_arrays(context.view_path(index))["mask"])
-                            for index in indices])
+    bar.update(len(chunk))
+  bar.close()
+  mask_pixels = np.asarray([
+      np.count_nonzero(load_arrays(context.view_path(index), ("mask",))["mask"])
+      for index in indices])
   empty = masks_lib.views_with_empty_masks(mask_pixels[:, None, None]
                                            >= selection_config.min_mask_pixels)
   visible = np.setdiff1d(indices, empty)

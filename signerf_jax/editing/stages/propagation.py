@@ -31,7 +31,8 @@ def _view_loader(context: EditContext, iteration: int):
   edited_nerf = context.nerf(iteration - 1) if iteration > 1 else None
 
   def load_views(indices: np.ndarray) -> update_lib.SlotViews:
-    conditioned = [load_arrays(context.view_path(int(index))) for index in indices]
+    conditioned = [load_arrays(context.view_path(int(index)), ("mask", "control"))
+                   for index in indices]
     masks = np.stack([item["mask"] for item in conditioned])
     images = dataset.images[indices]
     if edited_nerf is not None:
@@ -47,7 +48,8 @@ def _view_loader(context: EditContext, iteration: int):
 
 
 def update_image_set(context: EditContext, iteration: int = 1) -> str:
-  sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration))
+  sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration),
+                      ("rgb", "control"))
   visible = context.visible_views()
   directory = context.directory.path("update", iteration=iteration)
   report = update_lib.run_update(context.generator(iteration), sheet["rgb"], sheet["control"],

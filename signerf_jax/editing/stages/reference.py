@@ -82,7 +82,7 @@ def render_reference(context: EditContext, iteration: int = 1) -> str:
   arrays = conditioning_lib.condition(nerf.model, nerf.variables, cameras, context.selection,
                                       context.settings.selection).arrays()
   if iteration > 1:
-    first = load_arrays(context.directory.path("reference", "inputs.npz"))
+    first = load_arrays(context.directory.path("reference", "inputs.npz"), GEOMETRY_ARRAYS)
     arrays.update({name: first[name] for name in GEOMETRY_ARRAYS})
   save_arrays(directory / "inputs.npz", **arrays)
   files.write_json(directory / "cameras.json", {

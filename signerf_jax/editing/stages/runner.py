@@ -146,17 +146,20 @@ def _with_dependents(stages: list[Stage], names) -> set[str]:
 
 
 def _start(directory, settings: EditSettings, until: str, redo: tuple[str, ...],
-           progress: bool) -> tuple[EditContext, list[Stage]]:
-  """The context and the stages to run: checks the stage names and clears what `redo` asks
-  to redo."""
+           progress: bool, log: Callable[[str], None]) -> tuple[EditContext, list[Stage]]:
+  """The context and the stages to run: checks the stage names and the inputs (logging any
+  warning) and clears what `redo` asks to redo."""
   stages = pipeline_stages(settings)
   names = [stage.name for stage in stages]
   for name in (until, *redo):
     if name not in names:
       raise InputError(f"unknown stage {name!r} (stages: {', '.join(names)})", field="stage")
+  for warning in inputs.check_inputs(settings):
+    log(f"warning: {warning}")
   context = EditContext(EditDirectory(directory), settings, progress)
   context = dataclasses.replace(context, keys=stage_keys(stages, context))
   context.directory.root.mkdir(parents=True, exist_ok=True)
+  files.remove_temporaries(context.directory.root)  # Left by a run killed mid-write.
   redone = _with_dependents(stages, redo)
   for stage in stages:
     if stage.name in redone:
@@ -181,12 +184,13 @@ def run_edit(directory, settings: EditSettings, until: str = "evaluate",
   Returns:
     The run's context (its directory, settings and loaded inputs).
   """
-  context, stages = _start(directory, settings, until, tuple(redo), progress)
+  context, stages = _start(directory, settings, until, tuple(redo), progress, log)
   for number, stage in enumerate(stages, 1):
     key = context.keys[stage.name]
     label = f"[{number}/{len(stages)}] {stage.name}"
     if context.directory.is_finished(stage.name, key):
-      log(f"{label}: done before - {context.directory.record(stage.name).summary}")
+      summary = context.directory.record(stage.name).summary
+      log(f"{label}: reusing its earlier result - {summary}")
       continue
     log(f"{label}: {stage.description} ...")
     for folder in stage.outputs(context):

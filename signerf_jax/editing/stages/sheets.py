@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import tqdm
 
 from signerf_jax import files
 from signerf_jax.editing import figures, generation
@@ -22,7 +23,8 @@ KnownSheets = Callable[[generation.SheetRecipe], "np.ndarray | None"]
 
 
 def sheet_inputs(context: EditContext, iteration: int) -> generation.SheetInputs:
-  tiles = load_arrays(context.directory.path("reference", "inputs.npz", iteration=iteration))
+  tiles = load_arrays(context.directory.path("reference", "inputs.npz", iteration=iteration),
+                      ("render", "control", "mask"))
   return generation.SheetInputs.from_tiles(tiles["render"], tiles["control"], tiles["mask"],
                                            context.layout)
 
@@ -45,7 +47,7 @@ def _known_candidates(context: EditContext) -> KnownSheets:
     path = _candidate_path(context, recipe)
     if not path.is_file():
       return None
-    stored = load_arrays(path)
+    stored = load_arrays(path, ("rgb", "key"))
     return stored["rgb"] if str(stored["key"]) == expected else None
 
   return known
@@ -66,7 +68,10 @@ def preview(context: EditContext) -> str:
   recipes = preview_recipes(context)
   known, key = _known_candidates(context), _candidate_key(context)
   inputs = sheet_inputs(context, 1)
-  sheets = generation.generate_sheets(context.generator(1), inputs, recipes, known)
+  with tqdm.tqdm(total=sum(known(recipe) is None for recipe in recipes), unit="sheet",
+                 desc="preview", disable=not context.progress, dynamic_ncols=True) as bar:
+    sheets = generation.generate_sheets(context.generator(1), inputs, recipes, known,
+                                        progress=bar.update)
   for recipe, sheet in sheets.items():
     path = _candidate_path(context, recipe)
     if known(recipe) is None:

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import typing
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
+from signerf_jax import validation
 from signerf_jax.data import Dataset, load_dataset
+from signerf_jax.data.frame import SceneKind
 from signerf_jax.errors import InputError
+from signerf_jax.validation import PositiveFloat, PositiveInt, Range, Vector3, argument_type
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,29 +30,33 @@ class DataConfig:
     scene_radius: half-side of that region, in the dataset's units.
   """
 
-  downscale: int = 1
-  eval_every: int | None = None
+  downscale: PositiveInt = 1
+  eval_every: Annotated[int, Range(2)] | None = None
   held_out: tuple[str, ...] = ()
-  scene_kind: str | None = None
-  scene_center: tuple[float, float, float] | None = None
-  scene_radius: float | None = None
+  scene_kind: SceneKind | None = None
+  scene_center: Vector3 | None = None
+  scene_radius: PositiveFloat | None = None
+
+  def __post_init__(self):
+    validation.check_fields(self)
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
   """Flags for every `DataConfig` field (default: the gin-bound value)."""
-  parser.add_argument("--downscale", type=int, default=None, help="integer image downscale")
-  parser.add_argument("--eval_every", type=int, default=None,
+  parser.add_argument("--downscale", type=argument_type(DataConfig, "downscale"), default=None,
+                      help="integer image downscale")
+  parser.add_argument("--eval_every", type=argument_type(DataConfig, "eval_every"), default=None,
                       help="hold out every N-th view (default: the dataset's own split, else 8)")
   parser.add_argument("--held_out", default=None,
                       help="views to hold out: comma-separated names, or @FILE with one per line")
   parser.add_argument("--scene_kind", default=None,
-                      choices=("bounded", "forward_facing", "unbounded"),
+                      choices=typing.get_args(SceneKind),
                       help="override the scene kind the data suggests")
-  parser.add_argument("--scene_center", type=float, nargs=3, default=None,
-                      metavar=("X", "Y", "Z"),
+  parser.add_argument("--scene_center", type=argument_type(DataConfig, "scene_center"), nargs=3,
+                      default=None, metavar=("X", "Y", "Z"),
                       help="centre of the region modelled in detail, in the dataset's units")
-  parser.add_argument("--scene_radius", type=float, default=None,
-                      help="half-side of that region, in the dataset's units")
+  parser.add_argument("--scene_radius", type=argument_type(DataConfig, "scene_radius"),
+                      default=None, help="half-side of that region, in the dataset's units")
 
 
 def _held_out_names(value: str) -> tuple[str, ...]:

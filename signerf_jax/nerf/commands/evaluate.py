@@ -13,6 +13,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.metrics import lpips
 from signerf_jax.nerf import evaluate
 from signerf_jax.nerf.commands import load_recorded_dataset
+from signerf_jax.validation import PositiveInt, argument_type
 
 EVAL_FILE = "eval.json"
 RENDERS_FOLDER = "eval"
@@ -30,7 +31,8 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                       help="views to evaluate; eval (the held-out views) also reports the "
                       "training views' PSNR and the gap")
   parser.add_argument("--lpips", default="", help="VGG-LPIPS weights (safetensors) for LPIPS")
-  parser.add_argument("--chunk_size", type=int, default=4096, help="rays rendered at once")
+  parser.add_argument("--chunk_size", type=argument_type(PositiveInt), default=4096,
+                      help="rays rendered at once")
 
 
 def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights: str = "",

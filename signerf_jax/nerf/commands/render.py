@@ -7,6 +7,7 @@ from pathlib import Path
 
 from signerf_jax.nerf import evaluate, render
 from signerf_jax.nerf.commands import load_recorded_dataset
+from signerf_jax.validation import PositiveInt, argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -15,8 +16,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
                       help="which dataset views to render")
   parser.add_argument("--video", action="store_true", help="also render a camera-path video")
-  parser.add_argument("--frames", type=int, default=60, help="video length in frames")
-  parser.add_argument("--chunk_size", type=int, default=4096, help="rays rendered at once")
+  parser.add_argument("--frames", type=argument_type(PositiveInt), default=60,
+                      help="video length in frames")
+  parser.add_argument("--chunk_size", type=argument_type(PositiveInt), default=4096,
+                      help="rays rendered at once")
 
 
 def run(args: argparse.Namespace) -> int:

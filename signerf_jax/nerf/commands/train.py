@@ -13,14 +13,17 @@ from signerf_jax.data import load_dataset
 from signerf_jax.nerf import capacity, train, training_run
 from signerf_jax.nerf.commands import DataConfig, add_data_arguments, data_options
 from signerf_jax.nerf.commands import evaluate as evaluate_command
+from signerf_jax.validation import argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--data", required=True,
                       help="dataset directory (nerfstudio, Blender, LLFF, COLMAP, NeuS/IDR)")
   parser.add_argument("--out", required=True, help="run directory (resumed if it has a checkpoint)")
-  parser.add_argument("--steps", type=int, default=None, help="overrides TrainConfig.steps")
-  parser.add_argument("--max_seconds", type=float, default=None,
+  parser.add_argument("--steps", type=argument_type(train.TrainConfig, "steps"), default=None,
+                      help="overrides TrainConfig.steps")
+  parser.add_argument("--max_seconds", type=argument_type(train.TrainConfig, "max_seconds"),
+                      default=None,
                       help="training time budget: the schedule spans it (resumable)")
   parser.add_argument("--skip_eval", action="store_true",
                       help="do not evaluate on the held-out views after training")
@@ -36,19 +39,21 @@ def run(args: argparse.Namespace) -> int:
   if not gin_files and checkpoints.has_checkpoint(run_dir) and saved_config.is_file():
     gin_files = [saved_config]
   configs.parse_gin(gin_files, args.gin_param)
+  # Every setting is built (and so checked) before any work starts.
   options = data_options(args, configs.build(DataConfig))
+  config, rules = configs.build(train.TrainConfig), configs.build(capacity.CapacityRules)
   loading = {name: value for name, value in options.items() if name != "root"}
   loading["held_out"] = tuple(loading["held_out"])
   dataset = load_dataset(options["root"], split="train", **loading)
   model = (training_run.read_model_file(run_dir)[0] if checkpoints.has_checkpoint(run_dir)
-           else training_run.build_model(dataset, rules=configs.build(capacity.CapacityRules)))
+           else training_run.build_model(dataset, rules=rules))
   print(f"signerf train: {dataset.num_images} training views of {dataset.width}x"
         f"{dataset.height} px; {frame_lib.summary_line(dataset.frame)}\n"
         f"signerf train: {capacity.describe(model.capacity)}", file=sys.stderr)
   run_dir.mkdir(parents=True, exist_ok=True)
   configs.save_gin_config(run_dir)
   trainer = training_run.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
-                               model=model, config=configs.build(train.TrainConfig),
+                               model=model, config=config,
                                data_options=options)
   statistics = trainer.last_statistics
   message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
