@@ -53,6 +53,15 @@ def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
   video = [path for path in out.iterdir() if path.stem == "video"]
   assert len(video) == 1 and video[0].stat().st_size > 0
 
+  # `signerf info`: one JSON line on stdout, the same in words on stderr.
+  capsys.readouterr()
+  assert cli.main(["info", "--run", str(run)]) == 0
+  captured = capsys.readouterr()
+  info = json.loads(captured.out)
+  assert info["views"]["count"] == 14 and info["views"]["width"] == 24
+  assert info["frame"]["kind"] == "bounded" and info["default_proxy_size"] > 0
+  assert "signerf info: 14 training views of 24x24 px" in captured.err
+
 
 def test_eval_of_a_missing_run_is_an_input_error(tmp_path, capsys):
   assert cli.main(["eval", "--run", str(tmp_path / "nothing")]) == 2

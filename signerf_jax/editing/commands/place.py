@@ -1,0 +1,96 @@
+"""`signerf place`: stand a proxy on the surface under a pixel of a training view.
+
+    signerf info --run runs/scene                                   # views, frame, a default size
+    signerf place --run runs/scene --out edits/cow --view 12 --pixel 140 96 --proxy cow.obj
+    signerf preview --out edits/cow --prompt "a red cow"            # the placement is saved
+
+The pixel's ray into the trained NeRF gives the point, a plane fitted to the surface around it
+the up direction, and the proxy's size is `--size` in the dataset's units or `--size_fraction` of
+the view's height. The selection is written as gin bindings into OUT/config.gin (which every
+edit command reads first) and printed in the dataset's own units; OUT/placement.png shows the
+view with the proxy's silhouette, before any diffusion runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from signerf_jax import configs, files
+from signerf_jax.editing import place
+from signerf_jax.editing.commands import gin_value, parse_edit_config
+from signerf_jax.editing.config import SelectionConfig
+from signerf_jax.errors import InputError
+from signerf_jax.nerf import evaluate
+from signerf_jax.nerf.commands import load_recorded_dataset
+from signerf_jax.validation import OpenUnitInterval, argument_type
+
+FIGURE_NAME = "placement.png"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+  parser.add_argument("--run", required=True, help="the trained NeRF (`signerf train`)")
+  parser.add_argument("--out", required=True,
+                      help="the edit directory: the placement goes into OUT/config.gin")
+  parser.add_argument("--view", required=True,
+                      help="a training view: its index or image name (`signerf info` lists them)")
+  parser.add_argument("--pixel", required=True, nargs=2, type=argument_type(float),
+                      metavar=("X", "Y"), help="pixel of that view, as the run loads it")
+  parser.add_argument("--proxy", required=True,
+                      help="a mesh file or primitive:<box, sphere, cylinder, capsule, cow>")
+  size = parser.add_mutually_exclusive_group()
+  size.add_argument("--size", type=argument_type(SelectionConfig, "ground_size"),
+                    help="the proxy's largest side in the dataset's units")
+  size.add_argument("--size_fraction", type=argument_type(OpenUnitInterval),
+                    default=place.DEFAULT_SIZE_FRACTION,
+                    help="the proxy's largest side as a fraction of the view's height at the "
+                    "picked point (default %(default)s)")
+  parser.add_argument("--heading", type=argument_type(float), default=0.0,
+                      help="turn about the surface normal (degrees)")
+  parser.add_argument("--mesh_up", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
+                      default=SelectionConfig.mesh_up,
+                      help="the proxy's own up direction (default %(default)s: +y, as the "
+                      "shared meshes)")
+
+
+def view_index(view: str, names) -> int:
+  """A view given as an index into the training views or as its image name."""
+  if view.isdigit():
+    return int(view)
+  matches = [index for index, name in enumerate(names) if name == view or Path(name).name == view]
+  if len(matches) != 1:
+    raise InputError(f"{'no' if not matches else 'more than one'} training view named {view!r}",
+                     field="view")
+  return matches[0]
+
+
+def run(args: argparse.Namespace) -> int:
+  trained = evaluate.load_run(args.run)
+  dataset = load_recorded_dataset(trained.description, "train")
+  view = view_index(args.view, dataset.image_names)
+  found = place.locate(trained.model, trained.variables, dataset, view, tuple(args.pixel),
+                       size=args.size, size_fraction=args.size_fraction)
+  proxy = (args.proxy if args.proxy.startswith("primitive:")
+           else str(Path(args.proxy).resolve()))
+  selection = found.selection(proxy, args.heading, tuple(args.mesh_up))
+  figure = place.placement_figure(dataset, view, selection, found.pixel)
+  bindings = [f"SelectionConfig.{name} = {gin_value(getattr(selection, name))}"
+              for name in ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
+                           "heading_degrees", "mesh_up")]
+  bindings.append(f"EditConfig.original_run = {gin_value(str(Path(args.run).resolve()))}")
+  parse_edit_config(args.out, (), bindings)  # On top of the edit's saved settings, if any.
+  out = Path(args.out)
+  configs.save_gin_config(out)
+  files.write_image(out / FIGURE_NAME, figure)
+  print(f"signerf place: view {view} ({dataset.image_names[view]}), pixel "
+        f"({found.pixel[0]:g}, {found.pixel[1]:g}): the surface there is "
+        f"{100 * found.plane.inlier_fraction:.0f}% planar around the point (residual "
+        f"{found.plane.rms_distance:.2g} scene units); {out / FIGURE_NAME} shows the proxy",
+        file=sys.stderr)
+  print(json.dumps({"view": view, "ground_position": selection.ground_position,
+                    "up": selection.up, "ground_size": selection.ground_size,
+                    "units": "the dataset's own", "bindings": bindings,
+                    "config": str(out / configs.SAVED_CONFIG_NAME)}))
+  return 0

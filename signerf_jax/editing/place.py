@@ -1,0 +1,147 @@
+"""Placing a proxy by pointing at a training view (`signerf place`): the pixel's ray into the
+trained NeRF gives the point (median termination depth), a robust plane fit to the surface
+around it gives the support, and the proxy stands on it upright along the surface normal.
+
+The result is a `SelectionConfig` in the dataset's own units (frame "source"), so the numbers
+printed and saved are those the user's capture uses, and the edit places the proxy exactly as
+the figure shows it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from signerf_jax import camera as camera_lib
+from signerf_jax.data import poses as poses_lib
+from signerf_jax.data.dataset import Dataset
+from signerf_jax.editing import select as select_lib
+from signerf_jax.editing.config import SelectionConfig
+from signerf_jax.errors import InputError
+from signerf_jax.geometry import mesh_depth, placement
+from signerf_jax.nerf import render
+
+# A pixel the NeRF renders with less opacity than this shows no surface to stand on.
+MIN_ACCUMULATION = 0.5
+# The window of pixels the support plane is fitted to: this fraction of the view's height.
+WINDOW_FRACTION = 0.04
+DEFAULT_SIZE_FRACTION = 0.3
+
+
+@dataclasses.dataclass(frozen=True)
+class Placement:
+  """Where a picked pixel puts a proxy.
+
+  Attributes:
+    view: index of the training view.
+    pixel: (x, y) in that view's pixels as the run loads them.
+    position: [3] the support point, scene frame.
+    up: [3] unit surface normal (towards the camera), scene frame.
+    size: the proxy's largest side, scene units.
+    plane: the support plane fit (inlier share and residual say how flat the surface was).
+    world_from_source: [4, 4] the dataset's similarity into the scene frame.
+  """
+
+  view: int
+  pixel: tuple[float, float]
+  position: np.ndarray
+  up: np.ndarray
+  size: float
+  plane: placement.Plane
+  world_from_source: np.ndarray
+
+  def selection(self, proxy: str, heading_degrees: float = 0.0,
+                mesh_up=(0.0, 1.0, 0.0)) -> SelectionConfig:
+    """The proxy selection standing on the support, in the dataset's own units."""
+    source_from_world = np.linalg.inv(np.asarray(self.world_from_source, np.float64))
+    position = poses_lib.transform_points(source_from_world, self.position)
+    up = source_from_world[:3, :3] @ self.up
+    scale = poses_lib.similarity_scale(self.world_from_source)
+    return SelectionConfig(
+        kind="proxy", proxy=proxy, frame="source",
+        ground_position=tuple(round(float(value), 6) for value in position),
+        up=tuple(round(float(value), 6) for value in up / np.linalg.norm(up)),
+        ground_size=round(self.size / scale, 6), heading_degrees=heading_degrees,
+        mesh_up=tuple(mesh_up))
+
+
+def locate(model, variables, dataset: Dataset, view: int, pixel: tuple[float, float], *,
+           size: float | None = None, size_fraction: float = DEFAULT_SIZE_FRACTION,
+           seed: int = 0) -> Placement:
+  """The support under `pixel` of training view `view`.
+
+  Args:
+    model, variables: the trained NeRF.
+    dataset: its training views (scene frame).
+    view: index of the view in `dataset`.
+    pixel: (x, y) pixel coordinates in that view (0..width, 0..height).
+    size: the proxy's largest side in the dataset's own units; None: `size_fraction` of the
+      view's height at the picked point's depth.
+    seed: seeds the plane fit.
+  Raises:
+    InputError naming the parameter: a view or pixel outside the dataset, or a pixel where the
+    NeRF shows no surface.
+  """
+  cameras = dataset.cameras
+  if not 0 <= view < cameras.num_cameras:
+    raise InputError(f"must be 0 .. {cameras.num_cameras - 1}, got {view}", field="view")
+  x, y = (float(value) for value in pixel)
+  if not (0 <= x < cameras.width and 0 <= y < cameras.height):
+    raise InputError(f"({x:g}, {y:g}) is outside the {cameras.width}x{cameras.height} view",
+                     field="pixel")
+  radius = max(2, round(WINDOW_FRACTION * cameras.height))
+  xs, ys = placement.window_pixels(x, y, cameras.width, cameras.height, radius)
+  rays = camera_lib.pixel_rays(cameras, np.full(xs.shape, view), xs, ys)
+  rendered = render.render_rays_chunked(model, variables, rays, chunk_size=1024)
+  return support(dataset, view, (x, y), rays, rendered, size=size, size_fraction=size_fraction,
+                 seed=seed)
+
+
+def support(dataset: Dataset, view: int, pixel: tuple[float, float], rays: camera_lib.Rays,
+            rendered, *,
+            size: float | None = None, size_fraction: float = DEFAULT_SIZE_FRACTION,
+            seed: int = 0) -> Placement:
+  """`locate` from the rendered window: rays [K] through the picked `pixel` first, then the
+  window's (`placement.window_pixels`), and the NeRF's `accumulation` and `median_depth` [K]
+  along them."""
+  accumulation = np.asarray(rendered["accumulation"])
+  origins, directions = np.asarray(rays.origins), np.asarray(rays.directions)
+  x, y = pixel
+  if accumulation[0] < MIN_ACCUMULATION:
+    raise InputError(f"the NeRF shows no surface at ({x:.1f}, {y:.1f}) of view {view} (opacity "
+                     f"{accumulation[0]:.2f}): pick a pixel on the support", field="pixel")
+  z_depth = np.asarray(rendered["median_depth"])
+  distance = z_depth / np.asarray(rays.cos_to_optical_axis)
+  points = origins + directions * distance[:, None]
+  solid = accumulation[1:] >= MIN_ACCUMULATION
+  plane = placement.fit_plane(points[1:][solid], points[0],
+                              placement.RELATIVE_THRESHOLD * float(distance[0]), seed)
+  plane = placement.orient(plane, origins[0])
+  if size is None:
+    scene_size = size_fraction * dataset.cameras.height * float(z_depth[0]) / float(
+        dataset.cameras.fy[view])
+  else:
+    scene_size = size * poses_lib.similarity_scale(dataset.world_from_source)
+  return Placement(view, (x, y), plane.point, plane.normal, scene_size, plane,
+                   np.asarray(dataset.world_from_source, np.float64))
+
+
+def placement_figure(dataset: Dataset, view: int, selection: SelectionConfig,
+                     pixel: tuple[float, float]) -> np.ndarray:
+  """[H, W, 3] the view with the placed proxy's silhouette tinted and outlined in red and the
+  picked pixel marked: where the edit will put it, before any diffusion runs."""
+  proxy = select_lib.place_proxy(selection, dataset)
+  hit = np.asarray(mesh_depth.render_mesh_depth(proxy, dataset.cameras.take(
+      np.asarray([view]))).hit[0])
+  image = np.asarray(dataset.images[view], np.float32).copy()
+  red = np.asarray([1.0, 0.1, 0.1], np.float32)
+  image[hit] = 0.55 * image[hit] + 0.45 * red
+  inside = np.pad(hit, 1)
+  interior = (inside[:-2, 1:-1] & inside[2:, 1:-1] & inside[1:-1, :-2] & inside[1:-1, 2:])
+  image[hit & ~interior] = red
+  column, row = int(pixel[0]), int(pixel[1])
+  arm = max(2, dataset.cameras.height // 50)
+  image[row, max(column - arm, 0):column + arm + 1] = [1.0, 1.0, 0.0]
+  image[max(row - arm, 0):row + arm + 1, column] = [1.0, 1.0, 0.0]
+  return image

@@ -1,0 +1,113 @@
+"""`signerf place`'s geometry: the support under a picked pixel from what the NeRF renders along
+the window's rays, and the selection it gives in the dataset's own units."""
+
+import numpy as np
+import pytest
+
+from signerf_jax import camera
+from signerf_jax.data.dataset import Dataset
+from signerf_jax.editing import place, select
+from signerf_jax.editing.commands.place import view_index
+from signerf_jax.errors import InputError
+from signerf_jax.geometry import placement
+
+SIZE = 40
+# Source -> scene: scale 0.5, a quarter turn about z, shifted: the printed numbers must be the
+# source's, whatever the frame.
+WORLD_FROM_SOURCE = np.array([[0.0, -0.5, 0.0, 0.1], [0.5, 0.0, 0.0, -0.2],
+                              [0.0, 0.0, 0.5, 0.05], [0.0, 0.0, 0.0, 1.0]])
+GROUND_Z = 0.05  # The ground z = 0 of the source frame, in the scene frame.
+
+
+def ground_dataset() -> Dataset:
+  eye = np.array([[1.5, -1.2, 1.0]], np.float32)
+  camera_to_world = np.asarray(camera.look_at(eye, np.array([0.1, 0.0, GROUND_Z], np.float32)))
+  cameras = camera.Cameras.create(camera_to_world, fx=SIZE * 1.1, width=SIZE, height=SIZE)
+  return Dataset(images=np.full((1, SIZE, SIZE, 3), 0.5, np.float32), cameras=cameras,
+                 image_names=("images/view.png",),
+                 scene_bounds=np.array([[-1, -1, -1], [1, 1, 1]], np.float32),
+                 scene_kind="bounded", near=0.1, far=5.0, world_from_source=WORLD_FROM_SOURCE)
+
+
+def rendered_ground(dataset, pixel, box_pixels=()):
+  """What a NeRF of the ground plane renders along the window's rays (median z-depth), with an
+  object in front over the window's pixels `box_pixels` (outliers of the fit)."""
+  xs, ys = placement.window_pixels(*pixel, SIZE, SIZE, radius=3)
+  rays = camera.pixel_rays(dataset.cameras, np.zeros(xs.shape, np.int32), xs, ys)
+  origins, directions = np.asarray(rays.origins), np.asarray(rays.directions)
+  distance = (GROUND_Z - origins[:, 2]) / directions[:, 2]
+  distance[list(box_pixels)] *= 0.7
+  return rays, {"accumulation": np.ones(xs.shape, np.float32),
+                "median_depth": distance * np.asarray(rays.cos_to_optical_axis)}
+
+
+def test_the_support_is_the_ground_under_the_pixel_in_the_datasets_units():
+  dataset = ground_dataset()
+  rays, rendered = rendered_ground(dataset, (21.5, 24.5), box_pixels=range(1, 12))
+  found = place.support(dataset, 0, (21.5, 24.5), rays, rendered, size=0.8)
+  hit = np.asarray(rays.origins[0]) + np.asarray(rays.directions[0]) * (
+      (GROUND_Z - float(rays.origins[0, 2])) / float(rays.directions[0, 2]))
+  np.testing.assert_allclose(found.position, hit, atol=1e-4)
+  np.testing.assert_allclose(found.up, [0.0, 0.0, 1.0], atol=1e-4)
+  selection = found.selection("primitive:box")
+  assert selection.frame == "source" and selection.kind == "proxy"
+  source_hit = np.linalg.inv(WORLD_FROM_SOURCE) @ np.append(hit, 1.0)
+  np.testing.assert_allclose(selection.ground_position, source_hit[:3], atol=1e-4)
+  assert selection.ground_position[2] == pytest.approx(0.0, abs=1e-4)
+  np.testing.assert_allclose(selection.up, [0.0, 0.0, 1.0], atol=1e-4)
+  assert selection.ground_size == pytest.approx(0.8)  # Given in the source's units.
+  # The edit stands the proxy exactly there: its lowest point on the ground, under the pixel.
+  proxy = select.place_proxy(selection, dataset)
+  assert float(np.min(proxy.vertices[:, 2])) == pytest.approx(GROUND_Z, abs=1e-4)
+  extent = np.ptp(np.asarray(proxy.vertices, np.float64), axis=0).max()
+  assert extent == pytest.approx(0.8 * 0.5, rel=1e-4)  # 0.8 source units = 0.4 scene units.
+
+
+def test_without_a_size_the_proxy_takes_a_fraction_of_the_views_height():
+  dataset = ground_dataset()
+  rays, rendered = rendered_ground(dataset, (20.5, 20.5))
+  found = place.support(dataset, 0, (20.5, 20.5), rays, rendered, size_fraction=0.25)
+  expected = 0.25 * SIZE * float(rendered["median_depth"][0]) / (SIZE * 1.1)
+  assert found.size == pytest.approx(expected)
+
+
+def test_a_pixel_showing_nothing_is_an_error_naming_it():
+  dataset = ground_dataset()
+  rays, rendered = rendered_ground(dataset, (20.5, 20.5))
+  rendered["accumulation"][0] = 0.1
+  with pytest.raises(InputError, match="shows no surface") as error:
+    place.support(dataset, 0, (20.5, 20.5), rays, rendered)
+  assert error.value.field == "pixel"
+
+
+@pytest.mark.parametrize("view, pixel, field", [(1, (5, 5), "view"), (0, (40, 5), "pixel"),
+                                                (0, (5, -1), "pixel")])
+def test_a_view_or_pixel_outside_the_dataset_is_refused_before_rendering(view, pixel, field):
+  with pytest.raises(InputError) as error:
+    place.locate(None, None, ground_dataset(), view, pixel)
+  assert error.value.field == field
+
+
+def test_the_figure_shows_the_proxys_silhouette_and_the_pixel():
+  dataset = ground_dataset()
+  rays, rendered = rendered_ground(dataset, (20.5, 20.5))
+  selection = place.support(dataset, 0, (20.5, 20.5), rays, rendered, size=0.6).selection(
+      "primitive:box")
+  figure = place.placement_figure(dataset, 0, selection, (20.5, 20.5))
+  assert figure.shape == (SIZE, SIZE, 3)
+  red = (figure[..., 0] > 0.7) & (figure[..., 1] < 0.45)
+  assert 20 < red.sum() < SIZE * SIZE / 2
+  np.testing.assert_array_equal(figure[20, 20], [1.0, 1.0, 0.0])  # The picked pixel.
+  rows, _ = np.nonzero(red)
+  assert rows.max() >= 18  # The box stands on the point: it reaches up from the pixel's row.
+
+
+def test_views_are_named_by_index_or_image_name():
+  names = ("images/a.png", "images/b.png", "other/b.png")
+  assert view_index("1", names) == 1 and view_index("a.png", names) == 0
+  assert view_index("images/b.png", names) == 1
+  with pytest.raises(InputError, match="more than one"):
+    view_index("b.png", names)
+  with pytest.raises(InputError, match="no training view"):
+    view_index("c.png", names)
+
