@@ -215,6 +215,17 @@ def decompression_bomb(tmp_path, inputs):
           [str(bomb), "100000x100000 pixels is more than"], tmp_path / "r")
 
 
+def place_pixel_outside_the_view(tmp_path, inputs):
+  return (["place", "--run", str(inputs["run"]), "--out", str(tmp_path / "edit"), "--view", "0",
+           "--pixel", "500", "5", "--proxy", "primitive:cow"],
+          ["pixel", "(500, 5) is outside the 16x16 view"], tmp_path / "edit")
+
+
+def place_without_a_target(tmp_path, inputs):
+  return (["place", "--run", str(inputs["run"]), "--out", str(tmp_path / "edit"), "--view", "0"],
+          ["give --view, --pixel and --proxy"], tmp_path / "edit")
+
+
 COMMAND_CASES = [
     gin_file_with_import, saved_run_config_with_import, saved_edit_config_with_import,
     truncated_image, flipped_checkpoint_byte, truncated_checkpoint, negative_learning_rate,
@@ -222,6 +233,7 @@ COMMAND_CASES = [
     list_for_a_learning_rate, zero_rays_per_batch, one_image_dataset, model_config_that_is_a_list,
     downscale_beyond_the_image, out_names_a_file, out_under_a_file, box_with_nan,
     garbage_proxy_mesh, llff_hwf_that_disagrees_with_the_images, decompression_bomb,
+    place_pixel_outside_the_view, place_without_a_target,
 ]
 
 

@@ -1,6 +1,7 @@
-"""Placing a proxy by pointing at a training view (`signerf place`): the pixel's ray into the
-trained NeRF gives the point (median termination depth), a robust plane fit to the surface
-around it gives the support, and the proxy stands on it upright along the surface normal.
+"""Placing a selection by pointing at training views (`signerf place`): a proxy stands on the
+surface under a pixel (its ray into the trained NeRF gives the point, at the median termination
+depth; a robust plane fit to the surface around it the support; the proxy stands upright along
+the surface normal), or a box is triangulated from rectangles drawn in two views.
 
 The result is a `SelectionConfig` in the dataset's own units (frame "source"), so the numbers
 printed and saved are those the user's capture uses, and the edit places the proxy exactly as
@@ -19,7 +20,8 @@ from signerf_jax.data.dataset import Dataset
 from signerf_jax.editing import select as select_lib
 from signerf_jax.editing.config import SelectionConfig
 from signerf_jax.errors import InputError
-from signerf_jax.geometry import mesh_depth, placement
+from signerf_jax.geometry import mesh as mesh_lib
+from signerf_jax.geometry import mesh_depth, placement, primitives
 from signerf_jax.nerf import render
 
 # A pixel the NeRF renders with less opacity than this shows no surface to stand on.
@@ -127,21 +129,48 @@ def support(dataset: Dataset, view: int, pixel: tuple[float, float], rays: camer
                    np.asarray(dataset.world_from_source, np.float64))
 
 
+def box_selection(dataset: Dataset, views, rectangles) -> SelectionConfig:
+  """The box selection around what pixel `rectangles` ([V, 4] x0, y0, x1, y1) drawn in training
+  `views` ([V] indices, at least two) all see (`placement.frusta_box` inside the scene's
+  bounds), in the dataset's own units: the box around the source-frame corners."""
+  views = np.asarray(views, np.int64)
+  if np.any(views < 0) or np.any(views >= dataset.num_images):
+    raise InputError(f"views must be 0 .. {dataset.num_images - 1}, got {views.tolist()}",
+                     field="view")
+  box = placement.frusta_box(dataset.cameras.take(views), rectangles, dataset.scene_bounds)
+  corners = np.stack(np.meshgrid(*box.T, indexing="ij"), -1).reshape(-1, 3)
+  source = poses_lib.transform_points(
+      np.linalg.inv(np.asarray(dataset.world_from_source, np.float64)), corners)
+  return SelectionConfig(kind="box", frame="source",
+                         box_min=tuple(round(float(value), 6) for value in source.min(0)),
+                         box_max=tuple(round(float(value), 6) for value in source.max(0)))
+
+
+def selection_mesh(selection: SelectionConfig, dataset: Dataset) -> mesh_lib.Mesh:
+  """The selection as the edit builds it, as a mesh in the scene frame (a box's as a cuboid)."""
+  if selection.kind == "proxy":
+    return select_lib.place_proxy(selection, dataset)
+  box = select_lib.make_box(selection, dataset)
+  lower, upper = np.asarray(box.minimum, np.float64), np.asarray(box.maximum, np.float64)
+  return mesh_lib.transform_mesh(primitives.box(tuple(upper - lower)),
+                                 mesh_lib.similarity_transform(1.0, None, (lower + upper) / 2))
+
+
 def placement_figure(dataset: Dataset, view: int, selection: SelectionConfig,
-                     pixel: tuple[float, float]) -> np.ndarray:
-  """[H, W, 3] the view with the placed proxy's silhouette tinted and outlined in red and the
-  picked pixel marked: where the edit will put it, before any diffusion runs."""
-  proxy = select_lib.place_proxy(selection, dataset)
-  hit = np.asarray(mesh_depth.render_mesh_depth(proxy, dataset.cameras.take(
-      np.asarray([view]))).hit[0])
+                     pixel: tuple[float, float] | None = None) -> np.ndarray:
+  """[H, W, 3] the view with the selection's silhouette tinted and outlined in red (and the
+  picked pixel marked in yellow): where the edit will put it, before any diffusion runs."""
+  hit = np.asarray(mesh_depth.render_mesh_depth(selection_mesh(selection, dataset),
+                                                dataset.cameras.take(np.asarray([view]))).hit[0])
   image = np.asarray(dataset.images[view], np.float32).copy()
   red = np.asarray([1.0, 0.1, 0.1], np.float32)
   image[hit] = 0.55 * image[hit] + 0.45 * red
   inside = np.pad(hit, 1)
   interior = (inside[:-2, 1:-1] & inside[2:, 1:-1] & inside[1:-1, :-2] & inside[1:-1, 2:])
   image[hit & ~interior] = red
-  column, row = int(pixel[0]), int(pixel[1])
-  arm = max(2, dataset.cameras.height // 50)
-  image[row, max(column - arm, 0):column + arm + 1] = [1.0, 1.0, 0.0]
-  image[max(row - arm, 0):row + arm + 1, column] = [1.0, 1.0, 0.0]
+  if pixel is not None:
+    column, row = int(pixel[0]), int(pixel[1])
+    arm = max(2, dataset.cameras.height // 50)
+    image[row, max(column - arm, 0):column + arm + 1] = [1.0, 1.0, 0.0]
+    image[max(row - arm, 0):row + arm + 1, column] = [1.0, 1.0, 0.0]
   return image

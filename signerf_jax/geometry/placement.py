@@ -1,5 +1,6 @@
 """Where a picked pixel lands in the scene, and the surface around it: the support a proxy
-stands on (`editing.place` turns it into a selection).
+stands on; and the box around what rectangles drawn in two views see (`editing.place` turns
+either into a selection).
 
 The NeRF's median termination depth along the pixel's ray gives the point; the surface around it
 is a plane fitted to the points of a window of pixels around it, robust to the window reaching
@@ -14,12 +15,15 @@ import dataclasses
 
 import numpy as np
 
+from signerf_jax import camera as camera_lib
 from signerf_jax.errors import InputError
 
 # Inlier threshold of the plane fit, as a fraction of the point's distance from the camera: the
 # NeRF's depth error grows with distance.
 RELATIVE_THRESHOLD = 0.01
 RANSAC_ITERATIONS = 256
+# Grid cells per side when intersecting viewing frusta (`frusta_box`).
+FRUSTA_GRID = 96
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,3 +106,43 @@ def window_pixels(x: float, y: float, width: int, height: int, radius: int
   grid_x, grid_y = np.meshgrid(columns, rows)
   return (np.concatenate([[x], grid_x.ravel()]).astype(np.float32),
           np.concatenate([[y], grid_y.ravel()]).astype(np.float32))
+
+
+def frusta_box(cameras: camera_lib.Cameras, rectangles, bounds,
+               resolution: int = FRUSTA_GRID) -> np.ndarray:
+  """The axis-aligned box around what every rectangle sees: the intersection of their viewing
+  frusta inside `bounds`, sampled on a grid (two views from different directions triangulate
+  the object; nearly parallel views leave the box long along their common direction).
+
+  Args:
+    cameras: one camera per rectangle.
+    rectangles: [V, 4] (x0, y0, x1, y1) pixel rectangles, one per camera.
+    bounds: [2, 3] the region to search (the scene's, scene units).
+    resolution: grid cells per side.
+  Returns:
+    [2, 3] float64 (min, max) corners, scene units (grown by half a grid cell).
+  Raises:
+    InputError (field "rectangle"): fewer than two rectangles, an empty one, or frusta that do
+    not meet inside `bounds`.
+  """
+  rectangles = np.asarray(rectangles, np.float64).reshape(-1, 4)
+  if len(rectangles) < 2 or len(rectangles) != cameras.num_cameras:
+    raise InputError(f"needs one rectangle in each of at least two views, got "
+                     f"{len(rectangles)}", field="rectangle")
+  low, high = np.minimum(rectangles[:, :2], rectangles[:, 2:]), np.maximum(
+      rectangles[:, :2], rectangles[:, 2:])
+  if np.any(high - low <= 0):
+    raise InputError("a rectangle has no area", field="rectangle")
+  lower, upper = np.asarray(bounds, np.float64)
+  cell = (upper - lower) / resolution
+  steps = (np.arange(resolution) + 0.5)[:, None] * cell
+  grid = np.stack(np.meshgrid(*(lower[axis] + steps[:, axis] for axis in range(3)),
+                              indexing="ij"), -1).reshape(-1, 3)
+  pixels, z_depth = camera_lib.project(cameras, grid)
+  pixels, z_depth = np.asarray(pixels), np.asarray(z_depth)
+  seen = np.all((z_depth > 0) & np.all((pixels >= low[:, None]) & (pixels <= high[:, None]),
+                                       axis=-1), axis=0)
+  if not seen.any():
+    raise InputError("the rectangles' views do not meet inside the scene: draw them around the "
+                     "same object", field="rectangle")
+  return np.stack([grid[seen].min(0) - cell / 2, grid[seen].max(0) + cell / 2])

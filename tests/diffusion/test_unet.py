@@ -80,7 +80,8 @@ def test_weight_mismatches_name_the_tensor_and_both_shapes(tiny_checkpoint, tmp_
   save_file(tensors, tmp_path / "diffusion_pytorch_model.safetensors")
   with pytest.raises(InputError, match=message) as error:
     load_unet(tmp_path)
-  assert error.value.field == field and error.value.path == str(tmp_path)
+  assert error.value.field == field
+  assert error.value.path == str(tmp_path / "diffusion_pytorch_model.safetensors")
 
 
 def test_missing_files_are_input_errors(tiny_checkpoint, tmp_path):

@@ -111,3 +111,26 @@ def test_views_are_named_by_index_or_image_name():
   with pytest.raises(InputError, match="no training view"):
     view_index("c.png", names)
 
+
+
+def test_a_box_from_two_rectangles_is_given_in_the_datasets_units():
+  dataset = ground_dataset()
+  eyes = np.array([[1.5, -1.2, 1.0], [-1.4, -1.3, 0.9]], np.float32)
+  cameras = camera.Cameras.create(
+      np.asarray(camera.look_at(eyes, np.array([0.1, 0.0, GROUND_Z], np.float32))),
+      fx=SIZE * 1.1, width=SIZE, height=SIZE)
+  dataset = Dataset(images=np.full((2, SIZE, SIZE, 3), 0.5, np.float32), cameras=cameras,
+                    image_names=("a.png", "b.png"), scene_bounds=dataset.scene_bounds,
+                    scene_kind="bounded", near=0.1, far=5.0, world_from_source=WORLD_FROM_SOURCE)
+  cube = np.stack(np.meshgrid(*[[0.0, 0.2]] * 3, indexing="ij"), -1).reshape(-1, 3) + [
+      0.0, 0.0, GROUND_Z]
+  pixels = np.asarray(camera.project(cameras, cube)[0])
+  rectangles = np.concatenate([pixels.min(1), pixels.max(1)], axis=1)
+  selection = place.box_selection(dataset, [0, 1], rectangles)
+  assert selection.kind == "box" and selection.frame == "source"
+  # The cube in the source frame (scale 2 back, a quarter turn the other way) lies inside.
+  source_cube = (np.linalg.inv(WORLD_FROM_SOURCE) @ np.c_[cube, np.ones(8)].T).T[:, :3]
+  assert np.all(np.asarray(selection.box_min) <= source_cube.min(0) + 1e-5)
+  assert np.all(np.asarray(selection.box_max) >= source_cube.max(0) - 1e-5)
+  figure = place.placement_figure(dataset, 0, selection)
+  assert ((figure[..., 0] > 0.7) & (figure[..., 1] < 0.45)).sum() > 20

@@ -4,6 +4,7 @@
 import numpy as np
 import pytest
 
+from signerf_jax import camera
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import placement
 
@@ -60,3 +61,34 @@ def test_the_window_starts_with_the_picked_pixel_and_stays_inside_the_image():
   assert (xs[0], ys[0]) == (np.float32(0.7), np.float32(9.2))
   assert xs[1:].min() == 0.5 and xs[1:].max() == 2.5 and ys[1:].min() == 7.5
   assert ys[1:].max() == 9.5 and len(xs) == 1 + 3 * 3
+
+
+def two_views_of(corners):
+  """Two cameras 90 degrees apart looking at the origin, and each one's pixel rectangle around
+  the projected `corners`."""
+  eyes = np.array([[3.0, 0.0, 0.5], [0.0, -3.0, 0.5]], np.float32)
+  cameras = camera.Cameras.create(np.asarray(camera.look_at(eyes, np.zeros(3, np.float32))),
+                                  fx=60.0, width=64, height=64)
+  pixels, _ = camera.project(cameras, corners)
+  pixels = np.asarray(pixels)
+  return cameras, np.concatenate([pixels.min(1), pixels.max(1)], axis=1)
+
+
+def test_rectangles_in_two_views_triangulate_the_box_around_the_object():
+  lower, upper = np.array([-0.2, 0.1, 0.0]), np.array([0.3, 0.4, 0.5])
+  corners = np.stack(np.meshgrid(*np.stack([lower, upper]).T, indexing="ij"), -1).reshape(-1, 3)
+  cameras, rectangles = two_views_of(corners)
+  box = placement.frusta_box(cameras, rectangles, [[-1, -1, -1], [1, 1, 1]])
+  assert np.all(box[0] <= lower + 1e-6) and np.all(box[1] >= upper - 1e-6)  # Contains it,
+  assert np.all(box[0] >= lower - 0.25) and np.all(box[1] <= upper + 0.25)  # and little more.
+
+
+@pytest.mark.parametrize("rectangles", [[[10, 10, 20, 20]], [[10, 10, 10, 20], [5, 5, 9, 9]],
+                                        [[0, 0, 3, 3], [60, 60, 64, 64]]],
+                         ids=["one_view", "no_area", "frusta_do_not_meet"])
+def test_rectangles_that_do_not_triangulate_are_errors(rectangles):
+  cameras, _ = two_views_of(np.zeros((1, 3)))
+  cameras = cameras.take(np.arange(len(rectangles)))
+  with pytest.raises(InputError) as error:
+    placement.frusta_box(cameras, rectangles, [[-1, -1, -1], [1, 1, 1]])
+  assert error.value.field == "rectangle"

@@ -1,14 +1,17 @@
-"""`signerf place`: stand a proxy on the surface under a pixel of a training view.
+"""`signerf place`: stand a proxy on the surface under a pixel of a training view, or put a box
+around what rectangles drawn in two training views see.
 
     signerf info --run runs/scene                                   # views, frame, a default size
     signerf place --run runs/scene --out edits/cow --view 12 --pixel 140 96 --proxy cow.obj
+    signerf place --run runs/scene --out edits/vase --rectangle 3 40 60 90 120 \
+        --rectangle 17 100 50 150 118                               # a box, triangulated
     signerf preview --out edits/cow --prompt "a red cow"            # the placement is saved
 
 The pixel's ray into the trained NeRF gives the point, a plane fitted to the surface around it
 the up direction, and the proxy's size is `--size` in the dataset's units or `--size_fraction` of
 the view's height. The selection is written as gin bindings into OUT/config.gin (which every
 edit command reads first) and printed in the dataset's own units; OUT/placement.png shows the
-view with the proxy's silhouette, before any diffusion runs.
+(first) view with the selection's silhouette, before any diffusion runs.
 """
 
 from __future__ import annotations
@@ -34,12 +37,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--run", required=True, help="the trained NeRF (`signerf train`)")
   parser.add_argument("--out", required=True,
                       help="the edit directory: the placement goes into OUT/config.gin")
-  parser.add_argument("--view", required=True,
+  parser.add_argument("--view",
                       help="a training view: its index or image name (`signerf info` lists them)")
-  parser.add_argument("--pixel", required=True, nargs=2, type=argument_type(float),
-                      metavar=("X", "Y"), help="pixel of that view, as the run loads it")
-  parser.add_argument("--proxy", required=True,
+  parser.add_argument("--pixel", nargs=2, type=argument_type(float), metavar=("X", "Y"),
+                      help="pixel of that view, as the run loads it")
+  parser.add_argument("--proxy",
                       help="a mesh file or primitive:<box, sphere, cylinder, capsule, cow>")
+  parser.add_argument("--rectangle", action="append", nargs=5, default=[],
+                      metavar=("VIEW", "X0", "Y0", "X1", "Y1"),
+                      help="instead a box: a rectangle around the object in a training view; "
+                      "give two or more views")
   size = parser.add_mutually_exclusive_group()
   size.add_argument("--size", type=argument_type(SelectionConfig, "ground_size"),
                     help="the proxy's largest side in the dataset's units")
@@ -66,31 +73,54 @@ def view_index(view: str, names) -> int:
   return matches[0]
 
 
+def _rectangles(arguments, names) -> tuple[list[int], list[list[float]]]:
+  """(views, [x0, y0, x1, y1] each) of the --rectangle flags."""
+  views, rectangles = [], []
+  for view, *corners in arguments:
+    try:
+      rectangles.append([float(value) for value in corners])
+    except ValueError:
+      raise InputError(f"corners must be numbers, got {corners}", field="rectangle") from None
+    views.append(view_index(view, names))
+  return views, rectangles
+
+
 def run(args: argparse.Namespace) -> int:
+  pointing = args.pixel is not None or args.proxy is not None or args.view is not None
+  if pointing == bool(args.rectangle) or (pointing and None in (args.view, args.pixel,
+                                                                  args.proxy)):
+    raise InputError("give --view, --pixel and --proxy (a proxy on a surface), or --rectangle "
+                     "twice or more (a box)", field="place")
   trained = evaluate.load_run(args.run)
   dataset = load_recorded_dataset(trained.description, "train")
-  view = view_index(args.view, dataset.image_names)
-  found = place.locate(trained.model, trained.variables, dataset, view, tuple(args.pixel),
-                       size=args.size, size_fraction=args.size_fraction)
-  proxy = (args.proxy if args.proxy.startswith("primitive:")
-           else str(Path(args.proxy).resolve()))
-  selection = found.selection(proxy, args.heading, tuple(args.mesh_up))
-  figure = place.placement_figure(dataset, view, selection, found.pixel)
+  if args.rectangle:
+    views, rectangles = _rectangles(args.rectangle, dataset.image_names)
+    selection, view, pixel = place.box_selection(dataset, views, rectangles), views[0], None
+    names = ("kind", "frame", "box_min", "box_max")
+    report = (f"box {selection.box_min} .. {selection.box_max} where the views "
+              f"{', '.join(map(str, views))} meet")
+  else:
+    view = view_index(args.view, dataset.image_names)
+    found = place.locate(trained.model, trained.variables, dataset, view, tuple(args.pixel),
+                         size=args.size, size_fraction=args.size_fraction)
+    proxy = (args.proxy if args.proxy.startswith("primitive:")
+             else str(Path(args.proxy).resolve()))
+    selection, pixel = found.selection(proxy, args.heading, tuple(args.mesh_up)), found.pixel
+    names = ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
+             "heading_degrees", "mesh_up")
+    report = (f"view {view} ({dataset.image_names[view]}), pixel ({pixel[0]:g}, {pixel[1]:g}): "
+              f"the surface there is {100 * found.plane.inlier_fraction:.0f}% planar around the "
+              f"point (residual {found.plane.rms_distance:.2g} scene units)")
+  figure = place.placement_figure(dataset, view, selection, pixel)
   bindings = [f"SelectionConfig.{name} = {gin_value(getattr(selection, name))}"
-              for name in ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
-                           "heading_degrees", "mesh_up")]
+              for name in names]
   bindings.append(f"EditConfig.original_run = {gin_value(str(Path(args.run).resolve()))}")
   parse_edit_config(args.out, (), bindings)  # On top of the edit's saved settings, if any.
   out = Path(args.out)
   configs.save_gin_config(out)
   files.write_image(out / FIGURE_NAME, figure)
-  print(f"signerf place: view {view} ({dataset.image_names[view]}), pixel "
-        f"({found.pixel[0]:g}, {found.pixel[1]:g}): the surface there is "
-        f"{100 * found.plane.inlier_fraction:.0f}% planar around the point (residual "
-        f"{found.plane.rms_distance:.2g} scene units); {out / FIGURE_NAME} shows the proxy",
-        file=sys.stderr)
-  print(json.dumps({"view": view, "ground_position": selection.ground_position,
-                    "up": selection.up, "ground_size": selection.ground_size,
+  print(f"signerf place: {report}; {out / FIGURE_NAME} shows it", file=sys.stderr)
+  print(json.dumps({"selection": {name: getattr(selection, name) for name in names},
                     "units": "the dataset's own", "bindings": bindings,
                     "config": str(out / configs.SAVED_CONFIG_NAME)}))
   return 0

@@ -2,10 +2,11 @@
 
   original     1. train the original NeRF on the dataset's training views (or use a given run)
   select       2. the box or placed proxy, checked against the dataset            (inputs.py)
-  views        the mask and control depth of every training view, from the original NeRF
   reference    3-4. place the reference cameras; render their tiles            (reference.py)
   preview      candidate sheets for several seeds (and re-rolls) side by side    (sheets.py)
   sheet        5. the chosen sheet (a recipe: seed and re-rolled tiles)
+  views        the mask and control depth of every training view, from the original NeRF
+               (after the preview, which needs only the reference tiles)        (inputs.py)
   update       6. the image set update (vmapped, sharded, resumable per view) (propagation.py)
   dataset      the edited dataset in nerfstudio format, with provenance
   finetune     7. fine-tune the original NeRF on it, or retrain from scratch (nerf_update.py)

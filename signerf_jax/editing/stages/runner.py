@@ -70,9 +70,14 @@ def _iteration_stages(iteration: int) -> list[Stage]:
   if iteration == 1:
     stages.append(Stage("preview", sheets.preview, sheets.preview_settings, ("reference",), (),
                         "generating candidate sheets"))
+  stages.append(Stage(f"sheet{suffix}", bind(sheets.generate_sheet), bind(sheets.sheet_settings),
+                      (f"reference{suffix}",), ("sheet",), "generating the chosen sheet",
+                      iteration))
+  if iteration == 1:
+    # Only the update needs every view's mask and control: the preview comes first, quicker.
+    stages.append(Stage("views", inputs.condition_views, _no_settings, ("original", "select"),
+                        ("views",), "rendering masks and control depth of every training view"))
   return stages + [
-      Stage(f"sheet{suffix}", bind(sheets.generate_sheet), bind(sheets.sheet_settings),
-            (f"reference{suffix}",), ("sheet",), "generating the chosen sheet", iteration),
       Stage(f"update{suffix}", bind(propagation.update_image_set),
             bind(propagation.update_settings), (f"sheet{suffix}", "views") + previous,
             ("update",), "updating every view through the sheet's slot", iteration),
@@ -95,8 +100,6 @@ def pipeline_stages(settings: EditSettings) -> list[Stage]:
             else "training the original NeRF"),
       Stage("select", inputs.select, lambda context: as_json(context.settings.selection),
             ("original",), ("selection",), "building the selection"),
-      Stage("views", inputs.condition_views, _no_settings, ("original", "select"), ("views",),
-            "rendering masks and control depth of every training view"),
       *_iteration_stages(1),
       *(_iteration_stages(2) if second else []),
   ]
