@@ -7,7 +7,8 @@ evaluation with the shipped model.
       [--edit_seconds 120]
 
 Every step is the `signerf` command a user types (run in this process; the NeRF is reused when
-OUT/run exists): train (time budget `--train_seconds`), info, place (view 0, a pixel on the
+OUT/run exists, and then its command only resumes and evaluates: the NeRF's own training seconds
+are recorded apart): train (time budget `--train_seconds`), info, place (view 0, a pixel on the
 table in front of the toy), preview (four candidate sheets), edit (sheet 0; every NeRF training
 under `--edit_seconds`). Writes experiments/results/real_scene_edit.json (each command's wall
 seconds, the edit's stage seconds, the evaluation's metrics, the machine and its load) and
@@ -85,6 +86,8 @@ def main() -> None:
       "scene": "stitch", "downscale": DOWNSCALE, "view": VIEW, "pixel": PIXEL,
       "prompt": PROMPT, "train_seconds_budget": args.train_seconds,
       "edit_seconds_budget": args.edit_seconds, "command_seconds": seconds,
+      "nerf": {key: files.read_json(run / "eval.json")[key] for key in (
+          "seconds_trained", "held_out", "generalisation_gap_db")},
       "placement": json.loads(placed), "scene_info": {
           key: value for key, value in json.loads(info).items() if key != "views"},
       "metrics": metrics,

@@ -103,9 +103,10 @@ def test_the_figure_shows_the_proxys_silhouette_and_the_pixel():
 
 
 def test_views_are_named_by_index_or_image_name():
-  names = ("images/a.png", "images/b.png", "other/b.png")
+  names = ("images/a.png", "images/b.png", "other/b.png", "./train/0002")
   assert view_index("1", names) == 1 and view_index("a.png", names) == 0
   assert view_index("images/b.png", names) == 1
+  assert view_index("0002.png", names) == view_index("train/0002", names) == 3
   with pytest.raises(InputError, match="more than one"):
     view_index("b.png", names)
   with pytest.raises(InputError, match="no training view"):

@@ -31,8 +31,7 @@ def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
   assert "9 steps" in capsys.readouterr().out
 
   assert cli.main(["eval", "--run", str(run)]) == 0
-  lines = capsys.readouterr().out.strip().splitlines()
-  result = json.loads(lines[-1])
+  result = json.loads(capsys.readouterr().out)  # Exactly one JSON line on stdout.
   held_out = result["held_out"]
   assert {"psnr", "ssim", "depth_mae", "near_camera_weight"} <= set(held_out)
   assert held_out["depth_mae"] is not None and result["seconds_trained"] > 0

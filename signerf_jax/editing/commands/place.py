@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -63,10 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def view_index(view: str, names) -> int:
-  """A view given as an index into the training views or as its image name."""
+  """A view given as an index into the training views or as its image: the name the dataset
+  lists ("./train/0002"), its file name or its stem, with or without a suffix ("0002.png")."""
   if view.isdigit():
     return int(view)
-  matches = [index for index, name in enumerate(names) if name == view or Path(name).name == view]
+  matches = [index for index, name in enumerate(names)
+             if os.path.normpath(name) == os.path.normpath(view)]
+  if not matches:  # A file name or stem is enough where it is unique.
+    wanted = {Path(view).name, Path(view).stem}
+    matches = [index for index, name in enumerate(names)
+               if wanted & {Path(name).name, Path(name).stem}]
   if len(matches) != 1:
     raise InputError(f"{'no' if not matches else 'more than one'} training view named {view!r}",
                      field="view")
