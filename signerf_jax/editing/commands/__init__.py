@@ -31,8 +31,8 @@ from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.editing import stages
 from signerf_jax.editing.config import (TRAINING_RUNS, EditConfig, EditSettings,
                                         EvaluationConfig, FinetuneConfig, NerfUpdate,
-                                        PreviewConfig, SchedulerOverride, SelectionConfig,
-                                        SheetConfig, UpdateConfig)
+                                        PRIMITIVE_PREFIX, PreviewConfig, SchedulerOverride,
+                                        SelectionConfig, SheetConfig, UpdateConfig)
 from signerf_jax.errors import InputError
 from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings
@@ -168,7 +168,8 @@ def flag_bindings(args: argparse.Namespace) -> list[str]:
                  f"SelectionConfig.box_min = {gin_value(args.box[:3])}",
                  f"SelectionConfig.box_max = {gin_value(args.box[3:])}"]
   if getattr(args, "proxy", None) is not None:
-    proxy = args.proxy if args.proxy.startswith("primitive:") else str(Path(args.proxy).resolve())
+    proxy = (args.proxy if args.proxy.startswith(PRIMITIVE_PREFIX)
+             else str(Path(args.proxy).resolve()))
     bindings += ["SelectionConfig.kind = 'proxy'", f"SelectionConfig.proxy = {proxy!r}"]
   return bindings
 

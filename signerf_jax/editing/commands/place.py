@@ -25,7 +25,7 @@ from pathlib import Path
 from signerf_jax import configs, files
 from signerf_jax.editing import place
 from signerf_jax.editing.commands import gin_value, parse_edit_config
-from signerf_jax.editing.config import SelectionConfig
+from signerf_jax.editing.config import PRIMITIVE_PREFIX, SelectionConfig
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import evaluate
 from signerf_jax.nerf.commands import load_recorded_dataset
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     view = view_index(args.view, dataset.image_names)
     found = place.locate(trained.model, trained.variables, dataset, view, tuple(args.pixel),
                          size=args.size, size_fraction=args.size_fraction)
-    proxy = (args.proxy if args.proxy.startswith("primitive:")
+    proxy = (args.proxy if args.proxy.startswith(PRIMITIVE_PREFIX)
              else str(Path(args.proxy).resolve()))
     selection, pixel = found.selection(proxy, args.heading, tuple(args.mesh_up)), found.pixel
     names = ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
