@@ -73,8 +73,6 @@ def _read_preprocessing(directory: Path) -> clip_preprocessing.CLIPPreprocessing
   if not path.is_file():
     return clip_preprocessing.CLIPPreprocessing()
   config = files.read_json(path)
-  if not isinstance(config, dict):
-    raise InputError("expected a JSON object", path)
   return clip_preprocessing.CLIPPreprocessing.from_dict(config, path)
 
 

@@ -184,8 +184,6 @@ def load_checkpoint(directory: str | os.PathLike, config_class: Any, projection_
   directory = Path(directory)
   config_path = directory / "config.json"
   raw_config = files.read_json(config_path)
-  if not isinstance(raw_config, dict):
-    raise InputError("expected a JSON object", config_path)
   tensors = safetensors_io.read_safetensors(safetensors_io.find_weight_files(directory))
   if with_projection is None and "architectures" not in raw_config:
     with_projection = projection_name in tensors

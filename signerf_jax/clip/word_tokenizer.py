@@ -84,8 +84,7 @@ class WordTokenizer:
   def from_directory(cls, directory: str | os.PathLike) -> "WordTokenizer":
     directory = Path(directory)
     vocabulary = files.read_json(directory / VOCABULARY_NAME)
-    if not isinstance(vocabulary, dict) or not all(
-        isinstance(token_id, int) for token_id in vocabulary.values()):
+    if not all(isinstance(token_id, int) for token_id in vocabulary.values()):
       raise InputError("expected a JSON object of token -> integer id", directory / VOCABULARY_NAME)
     config = files.read_json(directory / CONFIG_NAME)
     max_length = config.get("model_max_length")
@@ -143,4 +142,4 @@ def is_word_tokenizer_directory(directory: str | os.PathLike) -> bool:
   if not config_path.is_file():
     return False
   config = files.read_json(config_path)
-  return isinstance(config, dict) and config.get("tokenizer_class") == TOKENIZER_CLASS
+  return config.get("tokenizer_class") == TOKENIZER_CLASS

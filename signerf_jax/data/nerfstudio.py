@@ -128,8 +128,6 @@ def read_capture(root: str | os.PathLike) -> Capture:
 def _read_meta(path: Path) -> dict[str, Any]:
   """A transforms file with a validated, non-empty `frames` list (each with a `file_path`)."""
   meta = files.read_json(path)
-  if not isinstance(meta, dict):
-    raise InputError("must hold a JSON object", path)
   frames = meta.get("frames")
   if not isinstance(frames, list) or not frames:
     raise InputError("missing or empty (a non-empty list of frames is required)", path, "frames")

@@ -348,7 +348,7 @@ def build_dataset(settings: DataSettings | None = None,
 def read_manifest(directory: str | os.PathLike) -> dict[str, Any]:
   """The manifest of a generated dataset; InputError if it is not one."""
   manifest = files.read_json(Path(directory) / MANIFEST_NAME)
-  if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+  if manifest.get("format") != FORMAT:
     raise InputError(f"not a {FORMAT} manifest", Path(directory) / MANIFEST_NAME, "format")
   return manifest
 

@@ -35,8 +35,6 @@ def _read_model_index(path: Path) -> tuple[dict[str, Path], dict[str, Any]]:
   """
   index_path = path / MODEL_INDEX
   index = files.read_json(index_path)
-  if not isinstance(index, dict):
-    raise InputError("expected a JSON object", index_path)
   components, options = {}, {}
   for name, value in index.items():
     if name.startswith("_"):

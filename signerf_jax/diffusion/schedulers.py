@@ -155,8 +155,6 @@ def load_scheduler_config(path: str | os.PathLike, kind: str | None = None,
   if path.is_dir():
     path = path / "scheduler_config.json"
   config = files.read_json(path)
-  if not isinstance(config, dict):
-    raise InputError("expected a JSON object", path)
   return scheduler_config(config, kind, source=path, **overrides)
 
 

@@ -31,7 +31,7 @@ def reference_settings(context: EditContext) -> dict[str, Any]:
 def read_reference_cameras(path: str, count: int, tile_size: int) -> camera_lib.Cameras:
   """User-given reference cameras: a Blender-style JSON (camera_angle_x, frames)."""
   meta = files.read_json(path)
-  frames = meta.get("frames") if isinstance(meta, dict) else None
+  frames = meta.get("frames")
   if not isinstance(frames, list) or len(frames) != count:
     raise InputError(f"needs exactly {count} frames (one per sheet tile)", path, "frames")
   angle = meta.get("camera_angle_x")
