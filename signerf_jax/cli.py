@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from signerf_jax import files
@@ -52,6 +54,19 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
   return parser
 
 
+def use_compilation_cache() -> None:
+  """Keeps compiled programs between commands in JAX's persistent cache, so a preview after
+  `signerf train`, or the next preview, does not compile the sampler and the renderer again
+  (~15 s of a cold preview's ~40 s on 2 cores). JAX's own settings win: JAX_COMPILATION_CACHE_DIR
+  chooses another directory, JAX_ENABLE_COMPILATION_CACHE=false turns the cache off."""
+  import jax  # pylint: disable=g-import-not-at-top  (`signerf --help` stays fast without it)
+  if jax.config.jax_compilation_cache_dir is None:
+    cache_home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    jax.config.update("jax_compilation_cache_dir", str(cache_home / "signerf_jax" / "xla"))
+    # A preview compiles ~90 programs, most under JAX's default 1 s threshold and ~5 s together.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser(argv).parse_args(argv)
@@ -59,6 +74,7 @@ def main(argv: Sequence[str] | None = None) -> int:
   try:
     if getattr(args, "out", None):  # Every command names the directory it writes `--out`.
       files.check_output_directory(args.out)
+    use_compilation_cache()
     return int(module.run(args) or 0)
   except InputError as error:
     print(f"signerf {args.command}: error: {error}", file=sys.stderr)

@@ -1,5 +1,5 @@
-"""Shared test plumbing: the ../shared/data location, the `shared_data` marker, and a broken
-torchvision hidden from transformers."""
+"""Shared test plumbing: the ../shared/data location, the `shared_data` marker, no persistent
+compilation cache, and a broken torchvision hidden from transformers."""
 
 from __future__ import annotations
 
@@ -8,6 +8,10 @@ import sys
 from pathlib import Path
 
 import pytest
+
+# The CLI keeps compiled programs in the user's cache directory between commands; tests (and the
+# commands they start) must neither read a machine's cache nor write to it.
+os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
 
 REPOSITORY_ROOT = Path(__file__).resolve().parent.parent
 # Real scenes and meshes live outside the project; SIGNERF_SHARED_DATA overrides the location.

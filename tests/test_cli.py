@@ -1,0 +1,32 @@
+"""The `signerf` entry point's process-wide settings."""
+
+from __future__ import annotations
+
+import jax
+import pytest
+
+from signerf_jax import cli
+
+
+@pytest.fixture
+def cache_settings():
+  """Restores JAX's cache settings after a test changed them."""
+  saved = (jax.config.jax_compilation_cache_dir,
+           jax.config.jax_persistent_cache_min_compile_time_secs)
+  yield
+  jax.config.update("jax_compilation_cache_dir", saved[0])
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", saved[1])
+
+
+def test_compiled_programs_are_kept_in_the_user_cache(cache_settings, monkeypatch, tmp_path):
+  jax.config.update("jax_compilation_cache_dir", None)
+  monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+  cli.use_compilation_cache()
+  assert jax.config.jax_compilation_cache_dir == str(tmp_path / "signerf_jax" / "xla")
+  assert jax.config.jax_persistent_cache_min_compile_time_secs == pytest.approx(0.1)
+
+
+def test_a_cache_directory_chosen_for_jax_is_kept(cache_settings, tmp_path):
+  jax.config.update("jax_compilation_cache_dir", str(tmp_path / "mine"))
+  cli.use_compilation_cache()
+  assert jax.config.jax_compilation_cache_dir == str(tmp_path / "mine")
