@@ -46,6 +46,7 @@ import gin
 import numpy as np
 
 from signerf_jax import configs, files
+from signerf_jax.data import synthetic
 from signerf_jax.editing import commands, demo
 from signerf_jax.editing.commands import sweeps
 from signerf_jax.editing.config import PRIMITIVE_PREFIX
@@ -57,8 +58,9 @@ import plotting  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # Proxy names of `ablations.proxies` (anything else is a mesh file or primitive:NAME).
-PROXY_MESHES = {"spot_high_poly": demo.SPOT_COW,
-                "spot_low_poly": demo.SPOT_COW.with_name("spot_control_mesh.obj")}
+SPOT_DIRECTORY = Path(synthetic.DEFAULT_MESH_DIRECTORY) / "spot"
+PROXY_MESHES = {"spot_high_poly": SPOT_DIRECTORY / "spot_triangulated.obj",
+                "spot_low_poly": SPOT_DIRECTORY / "spot_control_mesh.obj"}
 CONTROLNET_SCALE = "first_iteration/GenerationOptions.controlnet_conditioning_scale"
 # (metrics key, panel title, y label) of the quality numbers drawn against time.
 QUALITY_PANELS = (("background_psnr", "background PSNR", "dB"),

@@ -6,31 +6,37 @@ evaluation with the shipped model.
   python experiments/real_scene_edit.py [--out outputs/real_scene_edit] [--train_seconds 300]
       [--edit_seconds 120]
 
-Every step is the `signerf` command a user types (run in this process; the NeRF is reused when
-OUT/run exists, and then its command only resumes and evaluates: the NeRF's own training seconds
-are recorded apart): train (time budget `--train_seconds`), info, place (view 0, a pixel on the
-table in front of the toy), preview (four candidate sheets), edit (sheet 0; every NeRF training
-under `--edit_seconds`). Writes experiments/results/real_scene_edit.json (each command's wall
-seconds, the edit's stage seconds, the evaluation's metrics, the machine and its load) and
-real_scene_edit.png (the placement, the preview, the chosen sheet, before/after held-out
-renders).
+Every step is the `signerf` command a user types, each in a process of its own, all sharing one
+compilation cache that starts empty (OUT/compilation_cache; the NeRF is reused when OUT/run
+exists, and then its command only resumes and evaluates: the NeRF's own training seconds are
+recorded apart): train (time budget `--train_seconds`), info, place (a view, a pixel on the
+table in front of the toy), preview (four candidate sheets; timed with the cache as training
+left it, then again in a copy of the edit with the cache warm), edit (sheet 0; every NeRF
+training under `--edit_seconds`). The same edit runs again with whole downscaled frames instead
+of selection crops (`SheetConfig.crops = False`): the crops comparison. Writes
+experiments/results/real_scene_edit.json (each command's wall seconds, the edit's stage seconds,
+the evaluation's metrics, the crops comparison, the machine and its load) and
+real_scene_edit.png (the placement, the preview, before/after held-out renders with crops and
+with whole frames).
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import os
 import platform
+import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from signerf_jax import cli, files
+from signerf_jax import files
 from signerf_jax.editing import figures
+from signerf_jax.editing.commands import sweeps
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
@@ -41,15 +47,26 @@ PIXEL = (155.0, 150.0)  # On the table, in front of the toy's right foot (200 px
 PROMPT = "a red teddy bear"
 
 
-def signerf(*argv: str) -> tuple[float, str]:
-  """Runs `signerf ARGV` in this process: (wall seconds, its stdout). Fails on an error."""
+def signerf(cache: Path, *argv) -> tuple[float, str]:
+  """Runs `signerf ARGV` in a new process with compilation cache `cache`: (wall seconds, its
+  stdout). Fails on an error."""
   start = time.perf_counter()
-  stdout = io.StringIO()
-  with contextlib.redirect_stdout(stdout):
-    code = cli.main([str(value) for value in argv])
-  if code != 0:
-    raise SystemExit(f"signerf {' '.join(map(str, argv))} failed with exit code {code}")
-  return time.perf_counter() - start, stdout.getvalue()
+  command = [sys.executable, "-m", "signerf_jax.cli", *map(str, argv)]
+  done = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=False,
+                        env={**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache)})
+  if done.returncode != 0:
+    raise SystemExit(f"{' '.join(command)} failed with exit code {done.returncode}")
+  return time.perf_counter() - start, done.stdout
+
+
+def edit_quality(edit: Path) -> dict:
+  """The headline numbers of an edit (`sweeps.edit_quality`), the image set's prompt colour and
+  proxy shape, and its stages' seconds."""
+  metrics = files.read_json(edit / "evaluation" / "metrics.json")
+  return {**sweeps.edit_quality(metrics),
+          "prompt_color_share_images": metrics["prompt_color_adherence"]["image_set"]["share"],
+          "shape_iou_images": metrics["shape_iou"]["image_set"],
+          "stage_seconds": metrics["stage_seconds"]}
 
 
 def stacked(images: list[np.ndarray]) -> np.ndarray:
@@ -67,17 +84,27 @@ def main() -> None:
   args = parser.parse_args()
   load_at_start = os.getloadavg()
   out = Path(args.out)
-  run, edit = out / "run", out / "edit"
+  run, edit, warm, full_frames = (out / "run", out / "edit", out / "edit_warm_preview",
+                                  out / "edit_full_frames")
+  cache = out / "compilation_cache"
+  for directory in (edit, warm, full_frames, cache):
+    shutil.rmtree(directory, ignore_errors=True)
   seconds = {}
-  seconds["train"], _ = signerf("train", "--data", SHARED_DATA / "stitch", "--out", run,
+  seconds["train"], _ = signerf(cache, "train", "--data", SHARED_DATA / "stitch", "--out", run,
                                 "--downscale", DOWNSCALE, "--max_seconds", args.train_seconds)
-  seconds["info"], info = signerf("info", "--run", run)
+  seconds["info"], info = signerf(cache, "info", "--run", run)
   seconds["place"], placed = signerf(
-      "place", "--run", run, "--out", edit, "--view", VIEW, "--pixel", *PIXEL,
+      cache, "place", "--run", run, "--out", edit, "--view", VIEW, "--pixel", *PIXEL,
       "--proxy", SHARED_DATA / "meshes" / "teddy.obj", "--size_fraction", 0.3)
-  seconds["preview"], _ = signerf("preview", "--out", edit, "--prompt", PROMPT, "--quiet")
-  seconds["edit"], _ = signerf("edit", "--out", edit, "--sheet", "0", "--max_seconds",
-                               args.edit_seconds, "--quiet")
+  shutil.copytree(edit, warm)
+  preview = ("--prompt", PROMPT, "--quiet")
+  seconds["preview"], _ = signerf(cache, "preview", "--out", edit, *preview)
+  seconds["preview_warm_cache"], _ = signerf(cache, "preview", "--out", warm, *preview)
+  shutil.copytree(edit, full_frames)
+  edit_flags = ("--sheet", "0", "--max_seconds", args.edit_seconds, "--quiet")
+  seconds["edit"], _ = signerf(cache, "edit", "--out", edit, *edit_flags)
+  seconds["edit_full_frames"], _ = signerf(cache, "edit", "--out", full_frames, *edit_flags,
+                                           "--gin_param", "SheetConfig.crops = False")
   metrics = files.read_json(edit / "evaluation" / "metrics.json")
   result = {
       "what": "a real 360-degree capture edited end to end with the shipped model: "
@@ -91,6 +118,8 @@ def main() -> None:
       "placement": json.loads(placed), "scene_info": {
           key: value for key, value in json.loads(info).items() if key != "views"},
       "metrics": metrics,
+      "crops_comparison": {"crops": edit_quality(edit),
+                           "full_frames": edit_quality(full_frames)},
       "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                   "load_average_at_start": load_at_start,
                   "load_average_at_end": os.getloadavg()},
@@ -99,7 +128,10 @@ def main() -> None:
   files.write_json(RESULTS / "real_scene_edit.json", result)
   panels = [("placement (signerf place)", edit / "placement.png"),
             ("preview: candidate sheets 0-3", edit / "preview" / "preview.png"),
-            ("held-out views before / after", edit / "evaluation" / "before_after.png")]
+            ("held-out views before / after (selection crops, the default)",
+             edit / "evaluation" / "before_after.png"),
+            ("held-out views before / after (whole downscaled frames)",
+             full_frames / "evaluation" / "before_after.png")]
   images = [figures.image_grid([[files.read_image(path)]], [[label]]) for label, path in panels]
   files.write_image(RESULTS / "real_scene_edit.png", stacked(images))
   print(json.dumps({"command_seconds": seconds, "background_psnr":

@@ -2,11 +2,13 @@
 
 1. a synthetic scene is generated (`data.synthetic`, the demo's camera rig), unless OUT/scene
    already holds it;
-2. a cow proxy (the spot cow from ../shared/data/meshes when present, else the primitive cow) is
-   stood on the scene's reserved free spot (scene.json `free_spot`);
+2. the primitive cow proxy (`geometry.primitives`) is stood on the scene's reserved free spot
+   (scene.json `free_spot`);
 3. `signerf edit` runs in OUT/edit with the prompt: original NeRF, selection, reference sheet
    (candidates side by side), image set update, edited dataset, NeRF update, evaluation.
-Budgets (NeRF seconds, diffusion steps, views) are in gin_configs/demo.gin; every stage shows
+The scene and the proxy come from the repository alone (gin_configs/demo.gin reads no mesh
+files), so every machine makes the same demo, with or without ../shared/data. Budgets (NeRF
+seconds, diffusion steps, views) are in gin_configs/demo.gin; every stage shows
 progress and the run ends with one line naming the before/after renders, the sheet, the video
 and the metrics. Rerunning resumes: finished stages are skipped.
 """
@@ -26,7 +28,7 @@ from signerf_jax.editing.config import DEFAULT_MODEL_DIR, PRIMITIVE_PREFIX
 from signerf_jax.errors import InputError
 from signerf_jax.validation import NonNegativeInt, Range
 
-SPOT_COW = Path(synthetic.DEFAULT_MESH_DIRECTORY) / "spot" / "spot_triangulated.obj"
+PROXY = f"{PRIMITIVE_PREFIX}cow"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,11 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--model", help="a diffusers ControlNet inpainting pipeline directory "
                       "(default: the shipped model)")
   commands.add_common_arguments(parser)
-
-
-def proxy_mesh() -> str:
-  """The spot cow when the shared meshes are present, else the primitive cow."""
-  return str(SPOT_COW) if SPOT_COW.is_file() else f"{PRIMITIVE_PREFIX}cow"
 
 
 def model_directory(model: str | None) -> str:
@@ -93,7 +90,7 @@ def edit_bindings(scene_dir: Path, scene: dict[str, Any], settings: DemoSettings
   return [
       f"EditConfig.data = {str(scene_dir.resolve())!r}", f"EditConfig.prompt = {prompt!r}",
       f"EditConfig.model = {model!r}", "SelectionConfig.kind = 'proxy'",
-      f"SelectionConfig.proxy = {proxy_mesh()!r}",
+      f"SelectionConfig.proxy = {PROXY!r}",
       f"SelectionConfig.ground_position = {tuple(free_spot['center'])!r}",
       f"SelectionConfig.ground_size = {2 * free_spot['radius'] * settings.cow_size_fraction!r}",
       f"SelectionConfig.heading_degrees = {settings.heading_degrees!r}",
