@@ -1,4 +1,5 @@
-"""Line charts for the experiments' PNG plots, drawn with OpenCV (the project's image library).
+"""Line and interval charts for the experiments' PNG plots, drawn with OpenCV (the project's
+image library).
 
     panel = line_chart("NeRF training", [Series("measured", [1, 2, 4], [3.1, 5.9, 11.0])],
                        x_label="devices", y_label="rays / s")
@@ -93,6 +94,36 @@ def line_chart(title: str, series: Sequence[Series], x_label: str, y_label: str,
       for pixel in pixels:
         cv2.circle(canvas, pixel, 4, colour, -1, cv2.LINE_AA)
     _text(canvas, line.label, (left + 10, top + 16 + 18 * index), colour)
+  return canvas
+
+
+def interval_chart(title: str, rows: Sequence[tuple[str, float, float, float]], x_label: str,
+                   width: int = 460, height: int = 200) -> np.ndarray:
+  """One horizontal interval per row (label, mean, low, high): a line from low to high with a
+  dot at the mean; [height, width, 3] uint8 BGR. Rows with a None value are listed, not drawn."""
+  canvas = np.full((height, width, 3), 255, np.uint8)
+  left, right, top, bottom = 110, width - 15, 40, height - 40
+  known = [row for row in rows if None not in row[1:]]
+  values = np.asarray([row[1:] for row in known], float).reshape(-1, 3)
+  ticks = _ticks(values.min(), values.max()) if len(values) else np.array([0.0, 1.0])
+  low, high = min(ticks[0], values.min(initial=ticks[0])), max(ticks[-1],
+                                                                values.max(initial=ticks[-1]))
+  to_x = lambda value: int(round(left + (right - left) * (value - low) / max(high - low, 1e-12)))
+  for value in ticks:
+    cv2.line(canvas, (to_x(value), top), (to_x(value), bottom), GRID, 1)
+    _text(canvas, f"{value:g}", (to_x(value) - 6, bottom + 16))
+  _text(canvas, title, (10, 18), scale=0.55)
+  _text(canvas, x_label, ((left + right) // 2 - 4 * len(x_label), height - 8))
+  step = (bottom - top) / max(len(rows), 1)
+  for index, (label, mean, interval_low, interval_high) in enumerate(rows):
+    y = int(round(top + step * (index + 0.5)))
+    colour = COLOURS[index % len(COLOURS)]
+    _text(canvas, label, (5, y + 4), colour)
+    if None in (mean, interval_low, interval_high):
+      _text(canvas, "not measured", (left + 5, y + 4), colour)
+      continue
+    cv2.line(canvas, (to_x(interval_low), y), (to_x(interval_high), y), colour, 2, cv2.LINE_AA)
+    cv2.circle(canvas, (to_x(mean), y), 4, colour, -1, cv2.LINE_AA)
   return canvas
 
 

@@ -63,6 +63,7 @@ def configurables() -> dict[type, str]:
       edit.UpdateConfig: "UpdateConfig",
       edit.FinetuneConfig: "FinetuneConfig",
       edit.EvaluationConfig: "EvaluationConfig",
+      edit.NerfConsistencySettings: "NerfConsistencySettings",
       DemoSettings: "demo",
   }
 

@@ -120,7 +120,8 @@ def test_every_configurable_is_a_frozen_dataclass_under_its_own_gin_name():
       "TrainConfig", "CapacityRules", "DataConfig", "synthetic_scene", "synthetic_cameras",
       "consistency", "ReferencePlacement", "AttentionOptions", "GenerationOptions",
       "EditConfig", "SelectionConfig", "SheetConfig", "PreviewConfig",
-      "UpdateConfig", "FinetuneConfig", "EvaluationConfig", "demo"])
+      "UpdateConfig", "FinetuneConfig", "EvaluationConfig", "NerfConsistencySettings",
+      "demo"])
   for cls in table:
     assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen, cls
     assert cls.__module__.startswith("signerf_jax."), cls

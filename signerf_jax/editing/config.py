@@ -9,9 +9,12 @@ directory's config.gin); the command-line flags of `signerf edit` are shorthand 
   SelectionConfig  where: an axis-aligned box, or a proxy mesh (file or primitive) placed by a
                    similarity transform or stood on the ground; mask dilation and feathering;
   SheetConfig      the reference sheet: grid, tile size, full frames or crops around the selection;
-  UpdateConfig     the image set update: views per device;
+  UpdateConfig     the image set update: through the sheet or each view on its own, views per
+                   device;
   FinetuneConfig   the NeRF update's losses (L1, optional LPIPS on rendered patches);
-  EvaluationConfig the metrics and renders written at the end.
+  EvaluationConfig the metrics and renders written at the end;
+  NerfConsistencySettings  the evaluation's measurements of the edited NeRF itself (fit,
+                   solidity, correspondences; `editing.stages.nerf_consistency`).
 `EditSettings` holds them with the settings owned by other modules: `GenerationOptions` (the
 diffusion knobs; gin scopes `first_iteration/` and `second_iteration/` so the second iteration
 can stick closer to its input, as in the paper's table), `TrainConfig` (scopes `original/`,
@@ -33,14 +36,15 @@ from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings
 from signerf_jax.nerf.capacity import CapacityRules
 from signerf_jax.nerf.train import TrainConfig
-from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt,
-                                    Range, UnitInterval, Vector3)
+from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, OpenUnitInterval,
+                                    PositiveFloat, PositiveInt, Range, UnitInterval, Vector3)
 
 # The shipped model (diffusers layout), trained by the project (see default_model/). A path,
 # not an import: default_model sits above the library (it trains with the editing code).
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[1] / "default_model" / "weights"
 SelectionKind = Literal["box", "proxy"]
 NerfUpdate = Literal["auto", "finetune", "retrain"]
+Propagation = Literal["sheet", "independent"]
 # A scheduler class replacing the checkpoint's ("" keeps it).
 SchedulerOverride = Literal["", "ddim", "dpm_solver_multistep", "euler_ancestral"]  # "" first
 PRIMITIVE_PREFIX = "primitive:"
@@ -220,9 +224,13 @@ class UpdateConfig:
     views_per_device: views each device inpaints per batch; the batch is this times the number
       of devices (the last batch is padded). A fixed per-device size keeps every device's
       program the same whatever the device count.
+    propagation: "sheet" inpaints each view in the empty slot of the reference sheet (the
+      paper's image set update); "independent" inpaints each view on its own, with no sheet
+      (the paper's baseline for 3D consistency, for comparisons).
   """
 
   views_per_device: PositiveInt = 4
+  propagation: Propagation = "sheet"
 
   def __post_init__(self):
     validation.check_fields(self)
@@ -279,6 +287,38 @@ class EvaluationConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class NerfConsistencySettings:
+  """How the edited NeRF is measured (`editing.stages.nerf_consistency`).
+
+  Attributes:
+    enabled: measure it in the evaluate stage (it renders every edited training view, and the
+      held-out views at `correspondence_size`).
+    support_clearance: share of the selection box's height, from its bottom along the up axis,
+      left out of the opacity.
+    opacity_threshold: opacity above which a pixel is the object.
+    correspondence_size: the longer side (px) of the renders SIFT matches.
+    correspondence_views: held-out cameras rendered for correspondences (evenly spaced).
+    num_resamples, confidence, seed: the bootstrap.
+  """
+
+  enabled: bool = False
+  support_clearance: UnitInterval = 0.05
+  opacity_threshold: OpenUnitInterval = 0.5
+  correspondence_size: PositiveInt = 256
+  correspondence_views: PositiveInt = 12
+  num_resamples: PositiveInt = 2000
+  confidence: OpenUnitInterval = 0.95
+  seed: NonNegativeInt = 0
+
+  def __post_init__(self):
+    validation.check_fields(self)
+
+  def bootstrap(self) -> dict[str, Any]:
+    return {"num_resamples": self.num_resamples, "confidence": self.confidence,
+            "seed": self.seed}
+
+
+@dataclasses.dataclass(frozen=True)
 class EditSettings:
   """Everything an edit reads, built once where gin is parsed and passed to every stage.
 
@@ -290,6 +330,7 @@ class EditSettings:
     placement: how the reference cameras are placed around the selection.
     attention: how the diffusion models evaluate attention (speed and memory, not results).
     consistency: the consistency measurement of the evaluation.
+    nerf_consistency: the evaluation's measurements of the edited NeRF itself.
     gin_config: the gin bindings these settings came from (config.gin, provenance).
   """
 
@@ -308,6 +349,7 @@ class EditSettings:
   placement: ReferencePlacement = ReferencePlacement()
   attention: AttentionOptions = AttentionOptions()
   consistency: ConsistencySettings = ConsistencySettings()
+  nerf_consistency: NerfConsistencySettings = NerfConsistencySettings()
   gin_config: str = ""
 
   def __post_init__(self):

@@ -21,15 +21,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax import camera as camera_lib
 from signerf_jax.clip import word_tokenizer
-from signerf_jax.editing import crops
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator
-from signerf_jax.editing.update import TILE_FILL_COLOR, SlotViews
+from signerf_jax.editing.update import SlotViews, independent_batch
 from signerf_jax.metrics import colors, consistency, silhouettes
 
 # A pixel counts as changed by the edit when its colour moved by more than this (mean over RGB).
@@ -38,24 +36,17 @@ CHANGE_THRESHOLD = 0.1
 
 def independent_edits(generator: Generator, layout: sheet_lib.SheetLayout, views: SlotViews,
                       keys) -> np.ndarray:
-  """Each view inpainted on its own (a single tile, no sheet), pasted back through its mask.
+  """Each view inpainted on its own (`update.independent_batch`), in batches.
 
   Returns:
     [n, H, W, 3] float32.
   """
-  height, width = layout.tile_height, layout.tile_width
-  boxes = jnp.asarray(views.boxes, jnp.float32)
   edited = []
   for start in range(0, len(keys), generator.batch_size):
     part = slice(start, start + generator.batch_size)
-    image, control, mask = (
-        crops.crop_to_tiles(jnp.asarray(array[part], jnp.float32), boxes[part], height, width,
-                            fill_value=fill)
-        for array, fill in ((views.images, TILE_FILL_COLOR), (views.controls[..., None], 0.0),
-                            (views.masks[..., None], 0.0)))
-    generated = generator(image, mask, control, keys[part])
-    edited.append(np.asarray(crops.paste_tiles(jnp.asarray(views.images[part]), generated,
-                                               boxes[part], jnp.asarray(views.masks[part]))))
+    batch = SlotViews(views.images[part], views.masks[part], views.controls[part],
+                      views.boxes[part])
+    edited.append(independent_batch(generator, layout, batch, keys[part])[0])
   return np.concatenate(edited)
 
 

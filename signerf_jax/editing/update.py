@@ -22,6 +22,7 @@ uninterrupted one does.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from pathlib import Path
 from typing import Callable, Sequence
@@ -37,6 +38,7 @@ from signerf_jax.editing import crops
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator, view_key
 from signerf_jax.editing.project import frame_name
+from signerf_jax.errors import InputError
 
 IMAGES_FOLDER, TILES_FOLDER = "images", "tiles"
 TILE_FILL_COLOR = 0.5  # Tile pixels outside the source image: neutral grey, never masked.
@@ -105,14 +107,50 @@ def edited_image_path(directory: str | os.PathLike, view_index: int) -> Path:
   return Path(directory) / IMAGES_FOLDER / f"{frame_name(view_index)}.png"
 
 
-def run_update(generator: Generator, sheet_rgb, sheet_control, layout: sheet_lib.SheetLayout,
-               view_indices: Sequence[int], load_views: Callable[[np.ndarray], SlotViews],
-               directory: str | os.PathLike, seed: int, progress: bool = True,
+def independent_batch(generator: Generator, layout: sheet_lib.SheetLayout, views: SlotViews,
+                      keys) -> tuple[np.ndarray, np.ndarray]:
+  """Each view of a batch inpainted on its own (a single tile, no sheet), pasted back through its
+  mask: the paper's baseline, whose views disagree with each other.
+
+  Args and returns as `update_batch`, without the sheet.
+  """
+  height, width = layout.tile_height, layout.tile_width
+  boxes = jnp.asarray(views.boxes, jnp.float32)
+  image, control, mask = (
+      crops.crop_to_tiles(jnp.asarray(array, jnp.float32), boxes, height, width, fill_value=fill)
+      for array, fill in ((views.images, TILE_FILL_COLOR), (views.controls[..., None], 0.0),
+                          (views.masks[..., None], 0.0)))
+  tiles = generator(image, mask, control, keys)
+  edited = crops.paste_tiles(jnp.asarray(views.images, jnp.float32), tiles, boxes,
+                             jnp.asarray(views.masks, jnp.float32))
+  return np.asarray(edited), np.asarray(tiles)
+
+
+# How a batch of views is edited: (views, keys [n, 2]) -> (edited images, generated tiles).
+EditBatch = Callable[[SlotViews, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def batch_editor(generator: Generator, layout: sheet_lib.SheetLayout, propagation: str,
+                 sheet_rgb=None, sheet_control=None) -> EditBatch:
+  """The `EditBatch` of a propagation mode: "sheet" (`update_batch`, through the sheet's slot)
+  or "independent" (`independent_batch`)."""
+  if propagation == "sheet":
+    return functools.partial(update_batch, generator, sheet_rgb, sheet_control, layout)
+  if propagation == "independent":
+    return functools.partial(independent_batch, generator, layout)
+  raise InputError(f"must be 'sheet' or 'independent', got {propagation!r}",
+                   field="UpdateConfig.propagation")
+
+
+def run_update(generator: Generator, edit_batch: EditBatch, view_indices: Sequence[int],
+               load_views: Callable[[np.ndarray], SlotViews], directory: str | os.PathLike,
+               seed: int, progress: bool = True,
                on_view_written: Callable[[int], None] = lambda view_index: None) -> dict:
   """The resumable image set update of `view_indices` (see the module docstring).
 
   Args:
-    generator, sheet_rgb, sheet_control, layout: as `update_batch`.
+    generator: the sharded generator (its batch size and devices).
+    edit_batch: edits a batch of views (`batch_editor`).
     view_indices: the dataset views to edit (those whose mask is not empty), ascending.
     load_views: indices [n] -> their `SlotViews`.
     directory: receives images/frame_NNNNN.png (edited views) and tiles/frame_NNNNN.png.
@@ -137,8 +175,7 @@ def run_update(generator: Generator, sheet_rgb, sheet_control, layout: sheet_lib
     if not todo:
       continue
     keys = np.stack([view_key(seed, int(index)) for index in batch])
-    edited, slots = update_batch(generator, sheet_rgb, sheet_control, layout, load_views(batch),
-                                 keys)
+    edited, slots = edit_batch(load_views(batch), keys)
     computed += 1
     for index, image, slot in zip(batch, edited, slots):
       if int(index) not in todo:

@@ -16,23 +16,31 @@ from signerf_jax import camera, files
 from signerf_jax.nerf import model as nerf_model
 
 # Outputs copied back per pixel (weights stay on device: they are per sample).
-IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "near_weight")
+IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "near_weight",
+                 "selection_weight")
+# A box nothing is inside (its low corner above its high one): no selection weight.
+NO_BOX = np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]], np.float32)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 4))
 def _render_chunk(model: nerf_model.NerfModel, variables, rays: camera.Rays, start, chunk_size,
-                  near_distance):
+                  near_distance, selection_box):
   """Renders rays[start:start + chunk_size] (a traced start: one compilation for all chunks).
 
   "near_weight" is the render weight of the samples nearer to the camera than `near_distance`
-  (scene units, traced): what near-camera floaters contribute.
+  (scene units, traced): what near-camera floaters contribute. "selection_weight" is the weight
+  of the samples whose centres lie inside `selection_box` ([2, 3] low and high corners, scene
+  units, traced): the opacity of what the NeRF holds there, as this camera sees it.
   """
   chunk = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, chunk_size), rays)
   outputs, _ = nerf_model.render_rays(model, variables, chunk, jax.random.PRNGKey(0),
                                       training=False)
-  edges = outputs["edges"]
-  near = 0.5 * (edges[..., 1:] + edges[..., :-1]) < near_distance
-  outputs["near_weight"] = jnp.sum(outputs["weights"] * near, axis=-1)
+  edges, weights = outputs["edges"], outputs["weights"]
+  centres = 0.5 * (edges[..., 1:] + edges[..., :-1])
+  outputs["near_weight"] = jnp.sum(weights * (centres < near_distance), axis=-1)
+  points = chunk.origins[:, None] + centres[..., None] * chunk.directions[:, None]
+  inside = jnp.all((points >= selection_box[0]) & (points <= selection_box[1]), axis=-1)
+  outputs["selection_weight"] = jnp.sum(weights * inside, axis=-1)
   return {name: outputs[name] for name in IMAGE_OUTPUTS}
 
 
@@ -41,16 +49,19 @@ _image_rays = jax.jit(camera.image_rays)
 
 
 def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Rays,
-                        chunk_size: int = 4096, near_distance: float = 0.0
-                        ) -> dict[str, np.ndarray]:
+                        chunk_size: int = 4096, near_distance: float = 0.0,
+                        selection_box=None) -> dict[str, np.ndarray]:
   """Renders any number of rays in fixed-size chunks (the last one padded), so memory stays
   bounded and every chunk reuses one compiled function.
 
   Args:
     rays: Rays of any shape [...].
     near_distance: scene units; "near_weight" is the weight nearer to the camera than this.
+    selection_box: [2, 3] low and high corners (scene units) of the box whose render weight is
+      "selection_weight"; None for none.
   Returns:
-    numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance, near_weight [...].
+    numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance, near_weight,
+    selection_weight [...].
   """
   shape = rays.shape
   flat = rays.reshape(-1)
@@ -59,25 +70,27 @@ def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Ray
   flat = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - count, 0)]),
                       flat)
   near_distance = jnp.float32(near_distance)
+  box = jnp.asarray(NO_BOX if selection_box is None else selection_box, jnp.float32)
   pieces = [jax.device_get(_render_chunk(model, variables, flat, start, chunk_size,
-                                         near_distance))
+                                         near_distance, box))
             for start in range(0, padded, chunk_size)]
   return {name: np.concatenate([piece[name] for piece in pieces])[:count].reshape(
       shape + pieces[0][name].shape[1:]) for name in IMAGE_OUTPUTS}
 
 
 def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
-                   chunk_size: int = 4096, near_distance: float = 0.0
+                   chunk_size: int = 4096, near_distance: float = 0.0, selection_box=None
                    ) -> dict[str, np.ndarray]:
   """Renders every camera.
 
   Returns:
     rgb [N, H, W, 3] in [0, 1]; accumulation [N, H, W]; depth, median_depth [N, H, W] z-depth and
     distance [N, H, W] ray distance, in scene units (the far bound where nothing was hit);
-    near_weight [N, H, W], the weight nearer than `near_distance` to the camera.
+    near_weight [N, H, W], the weight nearer than `near_distance` to the camera;
+    selection_weight [N, H, W], the weight inside `selection_box` (see `render_rays_chunked`).
   """
   frames = [render_rays_chunked(model, variables, _image_rays(cameras, index), chunk_size,
-                                near_distance)
+                                near_distance, selection_box)
             for index in range(cameras.num_cameras)]
   return {name: np.stack([frame[name] for frame in frames]) for name in IMAGE_OUTPUTS}
 

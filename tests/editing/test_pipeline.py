@@ -39,6 +39,10 @@ def bindings(scene_dir: Path, model: Path, scene: dict, **overrides) -> list[str
       "first_iteration/GenerationOptions.num_inference_steps": "2",
       "PreviewConfig.seeds": "(0, 1)", "UpdateConfig.views_per_device": "4",
       "EvaluationConfig.independent_views": "2", "EvaluationConfig.video_frames": "0",
+      "NerfConsistencySettings.enabled": "True",
+      "NerfConsistencySettings.correspondence_size": "48",
+      "NerfConsistencySettings.correspondence_views": "3",
+      "NerfConsistencySettings.num_resamples": "200",
   }
   values.update(overrides)
   return [f"{name} = {value}" for name, value in values.items()]
@@ -73,6 +77,23 @@ def test_every_stage_runs_and_the_evaluation_is_written(finished_edit):
                                            "sheet", "update", "dataset", "finetune", "evaluate"}
   assert (directory / "preview" / "preview.png").is_file()
   assert (directory / "evaluation" / "before_after.png").is_file()
+
+
+def test_the_evaluation_measures_fit_solidity_and_correspondences_on_the_nerf(finished_edit):
+  directory, _, _ = finished_edit
+  metrics = files.read_json(directory / "evaluation" / "metrics.json")
+  measured = metrics["nerf_consistency"]
+  summaries = [measured["fit_psnr"], *measured["solidity"].values()]
+  for summary in summaries:
+    low, high = summary["interval"]
+    assert low <= summary["mean"] <= high and summary["count"] == len(
+        [value for value in summary["per_view"] if value is not None])
+  assert 0 <= measured["solidity"]["iou"]["mean"] <= 1
+  assert 0 <= measured["solidity"]["mean_opacity"]["mean"] <= 1
+  correspondences = measured["correspondences"]
+  assert max(correspondences["size"]) == 48
+  assert correspondences["views"] == min(3, metrics["num_eval_views"])
+  assert correspondences["pairs"] >= 1
 
 
 def test_the_edited_dataset_keeps_unmasked_pixels_and_records_its_provenance(finished_edit,

@@ -25,7 +25,7 @@ def swept(tiny_scene, random_model, tmp_path_factory):
                        log=lines.append)
   original = sweep.train_original()
   first = sweep.run("group", sweeps.Variant("baseline"))
-  again = sweep.run("other", sweeps.Variant("full_frames", ("SheetConfig.crops = False",)))
+  again = sweep.run("other", sweeps.Variant("crops", ("SheetConfig.crops = True",)))
   yield sweep, original, first, again, lines
   gin.clear_config()
 
@@ -46,7 +46,7 @@ def test_the_same_edit_listed_twice_runs_once(swept):
   sweep, _, first, again, lines = swept
   assert again["same_as"] == first["directory"] == str(sweep.root / "group" / "baseline")
   assert not (sweep.root / "other").exists()
-  assert again["name"] == "full_frames" and again["bindings"] == ["SheetConfig.crops = False"]
+  assert again["name"] == "crops" and again["bindings"] == ["SheetConfig.crops = True"]
   assert again["quality"] == first["quality"]
   assert not any(line.startswith("other/full_frames [") for line in lines)
 

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from signerf_jax import files
 from signerf_jax.diffusion import sampler
 from signerf_jax.editing import generation
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing import update
+from signerf_jax.errors import InputError
 
 from random_pipeline import TINY_OPTIONS
 
@@ -47,12 +49,16 @@ def generator(random_model):
                                    views_per_device=4)
 
 
-def run(generator, directory, views, **options):
-  sheet_rgb, sheet_control = make_sheet()
-  load = lambda indices: update.SlotViews(*(array[indices] for array in (
+def take(views, indices) -> update.SlotViews:
+  return update.SlotViews(*(array[indices] for array in (
       views.images, views.masks, views.controls, views.boxes)))
-  return update.run_update(generator, sheet_rgb, sheet_control, LAYOUT, np.arange(len(views.images)),
-                           load, directory, seed=5, progress=False, **options)
+
+
+def run(generator, directory, views, propagation="sheet", **options):
+  edit_batch = update.batch_editor(generator, LAYOUT, propagation, *make_sheet())
+  return update.run_update(generator, edit_batch, np.arange(len(views.images)),
+                           lambda indices: take(views, indices), directory, seed=5,
+                           progress=False, **options)
 
 
 def written(directory):
@@ -94,11 +100,34 @@ def test_the_update_changes_only_masked_pixels_and_only_the_slot(generator):
   assert np.abs(edited - views.images)[views.masks == 1].mean() > 0.01
   # A view's result depends on its own key only, not on its batch.
   alone, _ = update.update_batch(generator, sheet_rgb, sheet_control, LAYOUT,
-                                 update.SlotViews(*(array[1:2] for array in (
-                                     views.images, views.masks, views.controls, views.boxes))),
-                                 keys[1:2])
+                                 take(views, slice(1, 2)), keys[1:2])
   # Batches of different sizes reduce in a different float32 order: ~2e-6 apart.
   np.testing.assert_allclose(alone[0], edited[1], atol=1e-5)
+
+
+def test_independent_propagation_edits_each_view_without_the_sheet(generator, tmp_path):
+  views = make_views(5)
+  report = run(generator, tmp_path / "independent", views, propagation="independent")
+  assert report["edited"] == 5 and report["batches"] == 2
+  images = np.stack([np.asarray(files.read_image(
+      update.edited_image_path(tmp_path / "independent", index)))[..., :3] for index in range(5)])
+  outside = views.masks == 0
+  np.testing.assert_allclose(images[outside], views.images[outside], atol=1 / 255)
+  # The same views through the sheet differ: the sheet conditions them.
+  run(generator, tmp_path / "sheet", views)
+  through_sheet = np.stack([np.asarray(files.read_image(
+      update.edited_image_path(tmp_path / "sheet", index)))[..., :3] for index in range(5)])
+  assert np.abs(through_sheet - images)[views.masks == 1].mean() > 0.01
+  # A view's independent edit is its own: the same alone as in a batch.
+  keys = np.stack([generation.view_key(5, index) for index in range(5)])
+  alone, tiles = update.independent_batch(generator, LAYOUT, take(views, slice(3, 4)), keys[3:4])
+  assert tiles.shape == (1, TILE, TILE, 3)
+  np.testing.assert_allclose(alone[0], images[3], atol=1 / 255 + 1e-5)
+
+
+def test_an_unknown_propagation_is_refused(generator):
+  with pytest.raises(InputError, match="UpdateConfig.propagation"):
+    update.batch_editor(generator, LAYOUT, "telepathy")
 
 
 def test_crops_cut_tiles_around_the_selection_and_paste_back_through_the_mask(generator):

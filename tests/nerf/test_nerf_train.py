@@ -150,3 +150,25 @@ def test_a_diverged_run_stops_and_keeps_its_last_good_checkpoint(sphere, tmp_pat
   state, metadata = checkpoints.restore(tmp_path, trainer.state)
   assert metadata["step"] == int(state.step) == 3
   assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(state.variables["params"]))
+
+
+def test_selection_weight_is_the_opacity_inside_the_box(sphere, trained):
+  trainer, _ = trained
+  cameras = sphere.cameras.take([2])
+
+  def weight(box):
+    return render.render_cameras(trainer.model, trainer.state.variables, cameras, chunk_size=256,
+                                 selection_box=box)
+
+  everything = weight(np.array([[-9.0] * 3, [9.0] * 3]))
+  np.testing.assert_allclose(everything["selection_weight"], everything["accumulation"],
+                             atol=1e-5)
+  assert np.all(weight(None)["selection_weight"] == 0.0)
+  # The sphere's half at x > 0: less weight than the whole, and none on rays that miss it.
+  with count_compilations() as compiled:
+    half = weight(np.array([[0.0, -9.0, -9.0], [9.0, 9.0, 9.0]]))["selection_weight"]
+  assert compiled == []
+  assert np.all(half <= everything["accumulation"] + 1e-6)
+  assert 0.05 < half.sum() / everything["accumulation"].sum() < 0.95
+  misses = sphere.depths[2] == 0
+  assert np.mean(half[0][misses]) < 0.1

@@ -30,9 +30,10 @@ from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.editing import stages
 from signerf_jax.editing.config import (TRAINING_RUNS, EditConfig, EditSettings,
-                                        EvaluationConfig, FinetuneConfig, NerfUpdate,
-                                        PRIMITIVE_PREFIX, PreviewConfig, SchedulerOverride,
-                                        SelectionConfig, SheetConfig, UpdateConfig)
+                                        EvaluationConfig, FinetuneConfig,
+                                        NerfConsistencySettings, NerfUpdate, PRIMITIVE_PREFIX,
+                                        PreviewConfig, SchedulerOverride, SelectionConfig,
+                                        SheetConfig, UpdateConfig)
 from signerf_jax.errors import InputError
 from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings
@@ -192,7 +193,8 @@ def edit_settings() -> EditSettings:
       training={run: configs.build(TrainConfig, run) for run in TRAINING_RUNS},
       capacity=configs.build(CapacityRules), placement=configs.build(ReferencePlacement),
       attention=configs.build(AttentionOptions),
-      consistency=configs.build(ConsistencySettings), gin_config=gin.config_str())
+      consistency=configs.build(ConsistencySettings),
+      nerf_consistency=configs.build(NerfConsistencySettings), gin_config=gin.config_str())
 
 
 def run_command(name: str, directory: str | Path, redo=(), progress: bool = True

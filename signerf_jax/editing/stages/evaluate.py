@@ -25,6 +25,7 @@ from signerf_jax.editing import conditioning as conditioning_lib
 from signerf_jax.editing import evaluation, figures, generation
 from signerf_jax.editing import update as update_lib
 from signerf_jax.editing.config import as_json
+from signerf_jax.editing.stages import nerf_consistency
 from signerf_jax.editing.stages.context import EditContext
 from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
 from signerf_jax.editing.stages.propagation import edited_images
@@ -39,6 +40,7 @@ FIGURE_VIEWS = 6
 def evaluation_settings(context: EditContext) -> dict[str, Any]:
   return {"evaluation": as_json(context.settings.evaluation),
           "consistency": as_json(context.settings.consistency),
+          "nerf_consistency": as_json(context.settings.nerf_consistency),
           "generation": context.generation_key(1)}
 
 
@@ -135,8 +137,10 @@ def _figures(context: EditContext, iteration: int, nerfs, before, after) -> list
 def evaluate_edit(context: EditContext) -> str:
   start = time.perf_counter()
   config = context.settings.evaluation
+  measure_nerf = context.settings.nerf_consistency.enabled
   parts = (["held-out renders", "adherence"] + ["independent edits"] * bool(
-      config.independent_views) + ["CLIP"] * bool(config.clip_model) + ["figures"])
+      config.independent_views) + ["CLIP"] * bool(config.clip_model)
+           + ["fit, solidity, correspondences"] * measure_nerf + ["figures"])
   bar = tqdm.tqdm(total=len(parts), desc="evaluate", unit="part", disable=not context.progress,
                   dynamic_ncols=True, postfix=parts[0])
 
@@ -166,6 +170,11 @@ def evaluate_edit(context: EditContext) -> str:
   if config.clip_model:
     metrics["clip_directional_similarity"] = _clip_similarity(context, originals, edited, before,
                                                               after)
+    part_done()
+  if measure_nerf:
+    metrics["nerf_consistency"] = nerf_consistency.measure(
+        context, iteration, original, edited_nerf, before.selected,
+        context.settings.nerf_consistency)
     part_done()
   outputs = _figures(context, iteration, (original, edited_nerf), before, after)
   part_done()

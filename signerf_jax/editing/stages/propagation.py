@@ -1,6 +1,7 @@
 """The update and dataset stages (paper, Sec. 3 step 6, "Image Set Update"): every training view
-that shows the selection is inpainted in the empty slot of the sheet, and the edited views are
-written as a nerfstudio dataset with the masks, control depth and provenance alongside."""
+that shows the selection is inpainted in the empty slot of the sheet (or, for comparisons, on its
+own: `UpdateConfig.propagation`), and the edited views are written as a nerfstudio dataset with
+the masks, control depth and provenance alongside."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ from signerf_jax.nerf import render
 def update_settings(context: EditContext, iteration: int) -> dict[str, Any]:
   config = context.settings.sheet
   return {"seed": context.settings.edit.seed, "generation": context.generation_key(iteration),
-          "crops": config.crops, "crop_margin": config.crop_margin,
-          "crop_max_upscale": config.crop_max_upscale}
+          "propagation": context.settings.update.propagation, "crops": config.crops,
+          "crop_margin": config.crop_margin, "crop_max_upscale": config.crop_max_upscale}
 
 
 def _view_loader(context: EditContext, iteration: int):
@@ -52,13 +53,17 @@ def update_image_set(context: EditContext, iteration: int = 1) -> str:
                       ("rgb", "control"))
   visible = context.visible_views()
   directory = context.directory.path("update", iteration=iteration)
-  report = update_lib.run_update(context.generator(iteration), sheet["rgb"], sheet["control"],
-                                 context.layout, visible, _view_loader(context, iteration),
+  generator, propagation = context.generator(iteration), context.settings.update.propagation
+  edit_batch = update_lib.batch_editor(generator, context.layout, propagation, sheet["rgb"],
+                                       sheet["control"])
+  report = update_lib.run_update(generator, edit_batch, visible, _view_loader(context, iteration),
                                  directory, context.settings.edit.seed,
                                  progress=context.progress)
   skipped = context.dataset.num_images - len(visible)
   resumed = f", {report['resumed']} done before" if report["resumed"] else ""
-  return (f"{len(visible)} views inpainted in the slot of sheet {sheet['recipe']} "
+  how = (f"in the slot of sheet {sheet['recipe']}" if propagation == "sheet" else
+         "each on its own (no sheet)")
+  return (f"{len(visible)} views inpainted {how} "
           f"({report['batches']} batches of {report['batch_size']} on {report['devices']} "
           f"device(s){resumed}), {skipped} without the selection left as they are: "
           f"{directory / update_lib.IMAGES_FOLDER}")

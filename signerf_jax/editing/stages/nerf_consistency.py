@@ -1,0 +1,123 @@
+"""Part of the evaluate stage: is the edited object solid and consistent in the NeRF itself?
+
+The paper's claim is that sheet-propagated images agree across views, so the NeRF fitted to them
+converges to a crisp object, while independent per-view edits are averaged into a haze. Three
+measurements (`metrics.solidity`), each per view (or view pair) with a bootstrap interval, so
+that two edits are compared by whether their intervals overlap:
+
+  fit              PSNR of the edited NeRF's renders at the training views that show the
+                   selection against the edited images it was trained on, inside their masks;
+  solidity         at held-out cameras, the edited NeRF's opacity inside the selection's box
+                   (its lowest `support_clearance` along the up axis left out: the surface the
+                   object stands on is not the object) against the proxy's visible silhouette:
+                   IoU of (opacity > threshold) and the mean opacity inside the silhouette;
+  correspondences  verified SIFT correspondences (`metrics.consistency`, epipolar inliers)
+                   between renders of the edited NeRF at neighbouring held-out cameras, rendered
+                   at `correspondence_size` px so that SIFT finds enough of them, against the
+                   original NeRF's renders of the same cameras: the relative change and its
+                   interval over view pairs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from signerf_jax import camera as camera_lib
+from signerf_jax.editing.config import NerfConsistencySettings
+from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.propagation import edited_images
+from signerf_jax.geometry import reference_cameras
+from signerf_jax.metrics import consistency, solidity
+from signerf_jax.nerf import render
+
+
+def opacity_box(bounds: np.ndarray, up: np.ndarray, clearance: float) -> np.ndarray:
+  """[2, 3] the box `bounds` with its lowest `clearance` of the height along the axis nearest
+  to `up` removed."""
+  box = np.array(bounds, np.float64)
+  axis = int(np.argmax(np.abs(up)))
+  lift = clearance * (box[1, axis] - box[0, axis])
+  if up[axis] >= 0:
+    box[0, axis] += lift
+  else:
+    box[1, axis] -= lift
+  return box
+
+
+def _evenly_spaced(count: int, total: int) -> np.ndarray:
+  return np.unique(np.round(np.linspace(0, total - 1, min(count, total))).astype(int))
+
+
+def _summary(values: np.ndarray, settings: NerfConsistencySettings) -> dict[str, Any]:
+  """`solidity.summarize` and the values themselves (None for a view not measured)."""
+  return {**solidity.summarize(values, **settings.bootstrap()),
+          "per_view": [None if np.isnan(value) else float(value) for value in values]}
+
+
+def _fit(context: EditContext, nerf, iteration: int, settings: NerfConsistencySettings
+         ) -> dict[str, Any]:
+  visible = context.visible_views()
+  masks = context.conditioning_of_views().take(visible).mask
+  renders = render.render_cameras(nerf.model, nerf.variables,
+                                  context.dataset.cameras.take(visible))["rgb"]
+  per_view = solidity.masked_psnr(renders, edited_images(context, iteration, visible), masks)
+  return _summary(per_view, settings)
+
+
+def _solidity(context: EditContext, nerf, silhouettes: np.ndarray,
+              settings: NerfConsistencySettings) -> dict[str, Any]:
+  box = opacity_box(context.selection.bounds,
+                    np.asarray(reference_cameras.scene_up(context.dataset.cameras)),
+                    settings.support_clearance)
+  opacity = render.render_cameras(nerf.model, nerf.variables, context.eval_cameras,
+                                  selection_box=box)["selection_weight"]
+  per_view = solidity.solidity(opacity, silhouettes, settings.opacity_threshold)
+  return {name: _summary(values, settings) for name, values in per_view.items()}
+
+
+def _selection_rectangles(cameras: camera_lib.Cameras, points: np.ndarray) -> np.ndarray:
+  """[N, H, W] bool: the rectangle around the selection's projection in each camera."""
+  pixels, z_depth = (np.asarray(array) for array in camera_lib.project(cameras, points))
+  masks = np.zeros((cameras.num_cameras, cameras.height, cameras.width), bool)
+  for index, (projected, depth) in enumerate(zip(pixels, z_depth)):
+    finite = projected[np.all(np.isfinite(projected), axis=-1) & (depth > 0)]
+    if len(finite):
+      x0, y0 = np.clip(np.floor(finite.min(0)).astype(int), 0, [cameras.width, cameras.height])
+      x1, y1 = np.clip(np.ceil(finite.max(0)).astype(int), 0, [cameras.width, cameras.height])
+      masks[index, y0:y1, x0:x1] = True
+  return masks
+
+
+def _correspondences(context: EditContext, original, edited,
+                     settings: NerfConsistencySettings) -> dict[str, Any]:
+  cameras = context.eval_cameras
+  cameras = cameras.take(_evenly_spaced(settings.correspondence_views, cameras.num_cameras))
+  scale = settings.correspondence_size / max(cameras.width, cameras.height)
+  cameras = cameras.resized(max(1, round(cameras.width * scale)),
+                            max(1, round(cameras.height * scale)))
+  masks = _selection_rectangles(cameras, context.selection.points)
+  reports = {name: consistency.image_set_consistency(
+      render.render_cameras(nerf.model, nerf.variables, cameras)["rgb"], cameras, masks,
+      context.settings.consistency) for name, nerf in (("original", original), ("edited", edited))}
+  counts = {name: np.array([pair.epipolar_inliers for pair in report.pairs], np.float64)
+            for name, report in reports.items()}
+  return {"size": [cameras.width, cameras.height], "views": cameras.num_cameras,
+          "pairs": len(counts["edited"]),
+          "mean_epipolar_inliers": {name: float(np.mean(values)) if len(values) else None
+                                    for name, values in counts.items()},
+          "relative_change": consistency.relative_change(
+              reports["edited"], reports["original"])["mean_epipolar_inliers"],
+          "interval": list(solidity.relative_change_interval(
+              counts["edited"], counts["original"], **settings.bootstrap()))
+                      if len(counts["edited"]) else None}
+
+
+def measure(context: EditContext, iteration: int, original, edited, silhouettes: np.ndarray,
+            settings: NerfConsistencySettings) -> dict[str, Any]:
+  """fit, solidity ({iou, mean_opacity}) and correspondences of the edited NeRF (see the module
+  docstring); `silhouettes` [N, H, W] bool are the proxy's at the held-out cameras."""
+  return {"fit_psnr": _fit(context, edited, iteration, settings),
+          "solidity": _solidity(context, edited, silhouettes, settings),
+          "correspondences": _correspondences(context, original, edited, settings)}

@@ -1,0 +1,130 @@
+"""Does the edited NeRF hold a solid, consistent object? Measured on the NeRF itself.
+
+The paper's claim (Sec. 3): images made consistent through the reference sheet can be fitted by
+one radiance field, which then converges to a crisp object; inconsistent per-view edits are
+averaged into a haze. Two per-view measurements answer it, and a bootstrap over views says
+whether two edits differ:
+
+  fit        PSNR (dB) of the fine-tuned NeRF's renders at the training cameras against the
+             edited images it was trained on, inside the selection: consistent images can be
+             fitted, inconsistent ones cannot.
+  solidity   at held-out cameras, the NeRF's opacity inside the selection (the render weight of
+             its samples there, `nerf.render`'s "selection_weight") against the proxy's visible
+             silhouette: the IoU of (opacity > threshold) with the silhouette, and the mean
+             opacity inside the silhouette (1: solid; a haze stays well below).
+  bootstrap  a percentile interval of the mean of per-view values (or of the relative change of
+             per-pair correspondence counts), resampling views (pairs) with replacement: two
+             edits separate when their intervals do not overlap.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from signerf_jax.errors import InputError
+from signerf_jax.metrics import silhouettes
+
+OPACITY_THRESHOLD = 0.5
+# Data range of images in [0, 1]; an exact fit is reported at this PSNR rather than infinity.
+MAX_PSNR_DB = 100.0
+
+
+def masked_psnr(renders: np.ndarray, targets: np.ndarray, masks: np.ndarray) -> np.ndarray:
+  """[N] PSNR (dB) per view inside the masks; NaN for a view whose mask is empty.
+
+  Args:
+    renders, targets: [N, H, W, 3] in [0, 1].
+    masks: [N, H, W], non-zero where the view is compared.
+  """
+  renders, targets = np.asarray(renders, np.float64), np.asarray(targets, np.float64)
+  if renders.shape != targets.shape or renders.shape[:3] != np.shape(masks):
+    raise InputError(f"renders {renders.shape}, targets {targets.shape} and masks "
+                     f"{np.shape(masks)} must have the same views and pixels", field="masks")
+  inside = np.asarray(masks) > 0
+  squared = np.mean((renders - targets)**2, axis=-1)
+  counts = inside.sum(axis=(1, 2))
+  mse = np.sum(np.where(inside, squared, 0.0), axis=(1, 2)) / np.maximum(counts, 1)
+  psnr = np.minimum(-10.0 * np.log10(np.maximum(mse, 1e-300)), MAX_PSNR_DB)
+  return np.where(counts > 0, psnr, np.nan)
+
+
+def solidity(opacity: np.ndarray, silhouettes_shown: np.ndarray,
+             threshold: float = OPACITY_THRESHOLD) -> dict[str, np.ndarray]:
+  """Per-view solidity of an object against the silhouette it should have.
+
+  Args:
+    opacity: [N, H, W] in [0, 1], the NeRF's render weight inside the selection.
+    silhouettes_shown: [N, H, W] bool, the proxy's visible silhouette.
+    threshold: opacity above which a pixel counts as the object.
+  Returns:
+    iou [N] of (opacity > threshold) with the silhouette, and mean_opacity [N] inside the
+    silhouette; both NaN for views that do not show the silhouette.
+  """
+  opacity, shown = np.asarray(opacity, np.float64), np.asarray(silhouettes_shown, bool)
+  if opacity.shape != shown.shape or opacity.ndim != 3:
+    raise InputError(f"opacity {opacity.shape} and silhouettes {shown.shape} must both be "
+                     "[N, H, W]", field="silhouettes")
+  if not 0 < threshold < 1:
+    raise InputError(f"must be in (0, 1), got {threshold}", field="threshold")
+  counts = shown.sum(axis=(1, 2))
+  iou = silhouettes.silhouette_iou(opacity > threshold, shown)
+  mean_opacity = np.sum(np.where(shown, opacity, 0.0), axis=(1, 2)) / np.maximum(counts, 1)
+  visible = counts > 0
+  return {"iou": np.where(visible, iou, np.nan), "mean_opacity": np.where(visible, mean_opacity,
+                                                                         np.nan)}
+
+
+def bootstrap_interval(values: np.ndarray, num_resamples: int = 2000, confidence: float = 0.95,
+                       seed: int = 0, statistic=None) -> tuple[float, float]:
+  """Percentile bootstrap interval of a statistic of `values`, resampling its rows.
+
+  Args:
+    values: [N] per-view values, or [N, K] rows resampled together (e.g. a pair's counts in two
+      image sets); rows holding a NaN are left out.
+    statistic: [R, N(, K)] resampled values -> [R] estimates; default the mean over N.
+  Returns:
+    (low, high); one row gives a zero-width interval.
+  Raises:
+    InputError when no row is left.
+  """
+  values = np.asarray(values, np.float64)
+  values = values[~np.isnan(values.reshape(len(values), -1)).any(axis=1)]
+  if values.shape[0] == 0:
+    raise InputError("no values to bootstrap (every view was empty)", field="values")
+  if not 0 < confidence < 1:
+    raise InputError(f"must be in (0, 1), got {confidence}", field="confidence")
+  rng = np.random.default_rng(seed)
+  resampled = values[rng.integers(0, len(values), size=(num_resamples, len(values)))]
+  estimates = np.mean(resampled, axis=1) if statistic is None else statistic(resampled)
+  tail = 100 * (1 - confidence) / 2
+  low, high = np.percentile(estimates, [tail, 100 - tail])
+  return float(low), float(high)
+
+
+def relative_change_interval(edited: np.ndarray, original: np.ndarray, **bootstrap_options
+                             ) -> tuple[float, float]:
+  """Bootstrap interval over view pairs of sum(edited) / sum(original) - 1, e.g. verified
+  correspondences per pair after an edit against before it (-0.7: 70% fewer)."""
+  pairs = np.stack([np.asarray(edited, np.float64), np.asarray(original, np.float64)], axis=1)
+  return bootstrap_interval(
+      pairs, statistic=lambda rows: rows[..., 0].sum(1) / np.maximum(rows[..., 1].sum(1), 1e-12)
+      - 1, **bootstrap_options)
+
+
+def summarize(values: np.ndarray, **bootstrap_options) -> dict[str, Any]:
+  """mean, bootstrap interval ([low, high]) and count of per-view values (NaNs left out)."""
+  values = np.asarray(values, np.float64)
+  known = values[~np.isnan(values)]
+  return {"mean": float(np.mean(known)) if known.size else None,
+          "interval": list(bootstrap_interval(known, **bootstrap_options)) if known.size else None,
+          "count": int(known.size)}
+
+
+def separated(first: dict[str, Any], second: dict[str, Any]) -> bool:
+  """Whether two `summarize` results' intervals do not overlap."""
+  if first["interval"] is None or second["interval"] is None:
+    return False
+  (low_a, high_a), (low_b, high_b) = first["interval"], second["interval"]
+  return high_a < low_b or high_b < low_a

@@ -1,0 +1,83 @@
+"""The edited-NeRF measurements' geometry (`editing.stages.nerf_consistency`) and the experiment
+comparing sheet propagation with independent edits (experiments/nerf_consistency.py): its arms
+are distinct edits that measure the NeRF, and its figure is drawn whatever the numbers."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import gin
+import numpy as np
+import pytest
+
+from signerf_jax import camera, configs, files
+from signerf_jax.editing import commands, demo, stages
+from signerf_jax.editing.project import canonical_json
+from signerf_jax.editing.stages import nerf_consistency
+
+SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "nerf_consistency.py"
+
+
+@pytest.fixture(autouse=True)
+def clear_gin():
+  yield
+  gin.clear_config()
+
+
+@pytest.fixture(scope="module")
+def experiment():
+  if "nerf_consistency_experiment" not in sys.modules:
+    spec = importlib.util.spec_from_file_location("nerf_consistency_experiment", SCRIPT)
+    sys.modules["nerf_consistency_experiment"] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sys.modules["nerf_consistency_experiment"])
+  return sys.modules["nerf_consistency_experiment"]
+
+
+@pytest.mark.parametrize("up, low, high", [((0, 0, 1), [0, 0, 0.1], [1, 1, 2]),
+                                           ((0, 0, -1), [0, 0, 0], [1, 1, 1.9]),
+                                           ((0.1, 0.9, 0.2), [0, 0.05, 0], [1, 1, 2])])
+def test_the_opacity_box_leaves_out_the_bottom_along_the_up_axis(up, low, high):
+  bounds = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 2.0]])
+  box = nerf_consistency.opacity_box(bounds, np.asarray(up, float), 0.05)
+  np.testing.assert_allclose(box, [low, high])
+
+
+def test_selection_rectangles_frame_the_projection_and_ignore_cameras_behind():
+  eyes = np.array([[0.0, -3.0, 0.0], [0.0, 3.0, 0.0]], np.float32)
+  camera_to_world = np.asarray(camera.look_at(eyes, np.zeros(3, np.float32)))
+  cameras = camera.Cameras.create(camera_to_world, fx=20.0, width=32, height=32)
+  points = np.array([[-0.3, 0.0, -0.3], [0.3, 0.0, 0.3]])
+  rectangles = nerf_consistency._selection_rectangles(cameras, points)  # pylint: disable=protected-access
+  assert rectangles.shape == (2, 32, 32)
+  for rectangle in rectangles:  # Centred, about 2 * 20 * 0.3 / 3 = 4 px wide.
+    rows, columns = np.nonzero(rectangle)
+    assert 13 <= columns.min() <= columns.max() <= 18 and 13 <= rows.min() <= rows.max() <= 18
+  behind = camera.Cameras.create(np.asarray(camera.look_at(eyes[:1], np.array(
+      [0.0, -6.0, 0.0], np.float32))), fx=20.0, width=32, height=32)
+  assert not nerf_consistency._selection_rectangles(behind, points).any()  # pylint: disable=protected-access
+
+
+def test_the_arms_are_distinct_edits_that_measure_the_nerf(experiment, tmp_path):
+  scene = {"free_spot": {"center": [0.2, -0.3, 0.0], "radius": 0.3}, "up": [0.0, 0.0, 1.0]}
+  common = demo.edit_bindings(tmp_path / "scene", scene, demo.DemoSettings(), "a red cow",
+                              str(tmp_path / "model"))
+  common.append(f"EditConfig.original_run = {str(tmp_path / 'nerf')!r}")
+  keys = []
+  for arm in experiment.ARMS:
+    configs.parse_gin(["demo", "nerf_consistency"], common + list(arm.bindings))
+    settings = commands.edit_settings()
+    assert settings.nerf_consistency.enabled
+    keys.append(canonical_json(stages.edit_key(tmp_path / arm.name, settings)))
+  assert len(set(keys)) == len(experiment.ARMS)
+
+
+def test_the_figure_is_drawn_whatever_the_numbers(experiment, tmp_path):
+  files.write_image(tmp_path / "evaluation" / "before_after.png", np.zeros((8, 16, 3)))
+  summary = {"mean": 0.5, "interval": [0.4, 0.6]}
+  unmeasured = {"mean": None, "interval": None}
+  measured = {"fit_psnr": summary, "solidity": {"iou": summary, "mean_opacity": unmeasured},
+              "correspondences": {"relative_change": -0.2, "interval": [-0.2, -0.2]}}
+  arms = {name: {"directory": str(tmp_path), "nerf_consistency": measured}
+          for name in ("sheet", "independent")}
+  image = experiment.figure({"demo": {"arms": arms}})
+  assert image.ndim == 3 and image.shape[2] == 3 and np.isfinite(image).all()
