@@ -16,6 +16,7 @@ from signerf_jax.editing.project import canonical_json
 from signerf_jax.editing.stages import nerf_consistency
 
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "nerf_consistency.py"
+selection_rectangles = nerf_consistency._selection_rectangles  # pylint: disable=protected-access
 
 
 @pytest.fixture(autouse=True)
@@ -47,14 +48,14 @@ def test_selection_rectangles_frame_the_projection_and_ignore_cameras_behind():
   camera_to_world = np.asarray(camera.look_at(eyes, np.zeros(3, np.float32)))
   cameras = camera.Cameras.create(camera_to_world, fx=20.0, width=32, height=32)
   points = np.array([[-0.3, 0.0, -0.3], [0.3, 0.0, 0.3]])
-  rectangles = nerf_consistency._selection_rectangles(cameras, points)  # pylint: disable=protected-access
+  rectangles = selection_rectangles(cameras, points)
   assert rectangles.shape == (2, 32, 32)
   for rectangle in rectangles:  # Centred, about 2 * 20 * 0.3 / 3 = 4 px wide.
     rows, columns = np.nonzero(rectangle)
     assert 13 <= columns.min() <= columns.max() <= 18 and 13 <= rows.min() <= rows.max() <= 18
   behind = camera.Cameras.create(np.asarray(camera.look_at(eyes[:1], np.array(
       [0.0, -6.0, 0.0], np.float32))), fx=20.0, width=32, height=32)
-  assert not nerf_consistency._selection_rectangles(behind, points).any()  # pylint: disable=protected-access
+  assert not selection_rectangles(behind, points).any()
 
 
 def test_the_arms_are_distinct_edits_that_measure_the_nerf(experiment, tmp_path):
