@@ -24,10 +24,11 @@ from typing import Any
 import numpy as np
 
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import image as image_metrics
 from signerf_jax.metrics import silhouettes
 
 OPACITY_THRESHOLD = 0.5
-# Data range of images in [0, 1]; an exact fit is reported at this PSNR rather than infinity.
+# An exact fit: `metrics.image.psnr` floors the squared error at 1e-10 (data range 1).
 MAX_PSNR_DB = 100.0
 
 
@@ -43,11 +44,9 @@ def masked_psnr(renders: np.ndarray, targets: np.ndarray, masks: np.ndarray) -> 
     raise InputError(f"renders {renders.shape}, targets {targets.shape} and masks "
                      f"{np.shape(masks)} must have the same views and pixels", field="masks")
   inside = np.asarray(masks) > 0
-  squared = np.mean((renders - targets)**2, axis=-1)
-  counts = inside.sum(axis=(1, 2))
-  mse = np.sum(np.where(inside, squared, 0.0), axis=(1, 2)) / np.maximum(counts, 1)
-  psnr = np.minimum(-10.0 * np.log10(np.maximum(mse, 1e-300)), MAX_PSNR_DB)
-  return np.where(counts > 0, psnr, np.nan)
+  psnr = [float(image_metrics.psnr_jit(render, target, mask)) if mask.any() else np.nan
+          for render, target, mask in zip(renders, targets, inside)]
+  return np.asarray(psnr)
 
 
 def solidity(opacity: np.ndarray, silhouettes_shown: np.ndarray,

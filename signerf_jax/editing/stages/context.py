@@ -169,3 +169,10 @@ class EditContext:
   def visible_views(self) -> np.ndarray:
     """[V] int indices of the training views that show the selection."""
     return np.asarray(files.read_json(self.directory.path("views", "views.json"))["visible"])
+
+
+def evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
+  """At most `count` of `indices` [N], evenly spaced from the first to the last."""
+  if count >= len(indices):
+    return indices
+  return indices[np.round(np.linspace(0, len(indices) - 1, count)).astype(int)]

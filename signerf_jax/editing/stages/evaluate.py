@@ -26,7 +26,7 @@ from signerf_jax.editing import evaluation, figures, generation
 from signerf_jax.editing import update as update_lib
 from signerf_jax.editing.config import as_json
 from signerf_jax.editing.stages import nerf_consistency
-from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.context import EditContext, evenly_spaced
 from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
 from signerf_jax.editing.stages.propagation import edited_images
 from signerf_jax.metrics import background
@@ -42,12 +42,6 @@ def evaluation_settings(context: EditContext) -> dict[str, Any]:
           "consistency": as_json(context.settings.consistency),
           "nerf_consistency": as_json(context.settings.nerf_consistency),
           "generation": context.generation_key(1)}
-
-
-def _evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
-  if count >= len(indices):
-    return indices
-  return indices[np.round(np.linspace(0, len(indices) - 1, count)).astype(int)]
 
 
 def _held_out_conditioning(context: EditContext, nerf) -> conditioning_lib.Conditioning:
@@ -81,7 +75,7 @@ def _consistency(context: EditContext, visible, originals, edited, conditioned
                  ) -> dict[str, Any]:
   """Independent per-view edits of some edited views, against the sheet-propagated ones."""
   dataset = context.dataset
-  chosen = _evenly_spaced(np.arange(len(visible)), context.settings.evaluation.independent_views)
+  chosen = evenly_spaced(np.arange(len(visible)), context.settings.evaluation.independent_views)
   views = update_lib.SlotViews(originals[chosen], conditioned.mask[chosen],
                                conditioned.control[chosen],
                                context.tile_boxes(dataset.cameras)[visible[chosen]])

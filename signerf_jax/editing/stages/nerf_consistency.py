@@ -26,7 +26,7 @@ import numpy as np
 
 from signerf_jax import camera as camera_lib
 from signerf_jax.editing.config import NerfConsistencySettings
-from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.context import EditContext, evenly_spaced
 from signerf_jax.editing.stages.propagation import edited_images
 from signerf_jax.geometry import reference_cameras
 from signerf_jax.metrics import consistency, solidity
@@ -44,10 +44,6 @@ def opacity_box(bounds: np.ndarray, up: np.ndarray, clearance: float) -> np.ndar
   else:
     box[1, axis] -= lift
   return box
-
-
-def _evenly_spaced(count: int, total: int) -> np.ndarray:
-  return np.unique(np.round(np.linspace(0, total - 1, min(count, total))).astype(int))
 
 
 def _summary(values: np.ndarray, settings: NerfConsistencySettings) -> dict[str, Any]:
@@ -93,7 +89,8 @@ def _selection_rectangles(cameras: camera_lib.Cameras, points: np.ndarray) -> np
 def _correspondences(context: EditContext, original, edited,
                      settings: NerfConsistencySettings) -> dict[str, Any]:
   cameras = context.eval_cameras
-  cameras = cameras.take(_evenly_spaced(settings.correspondence_views, cameras.num_cameras))
+  cameras = cameras.take(evenly_spaced(np.arange(cameras.num_cameras),
+                                       settings.correspondence_views))
   scale = settings.correspondence_size / max(cameras.width, cameras.height)
   cameras = cameras.resized(max(1, round(cameras.width * scale)),
                             max(1, round(cameras.height * scale)))
