@@ -54,10 +54,13 @@ class FinetuneLosses:
   Attributes:
     lpips_weight: weight of the LPIPS term; 0 disables it (and patch rendering).
     patch_size: side of the rendered patches when LPIPS is on.
+    opacity_entropy_weight: weight of `losses.opacity_entropy` of the trained field's opacity
+      (inside the edit region for an edit).
   """
 
   lpips_weight: float = 0.0
   patch_size: int = 32
+  opacity_entropy_weight: float = 0.0
 
   @property
   def uses_lpips(self) -> bool:
@@ -99,14 +102,16 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     count = max(1, model.capacity.rays_per_batch // size**2)
     rays, pixels = random_patches(ray_key, data.cameras, count, size)
     rays, pixels = rays.reshape(-1), tuple(array.reshape(-1) for array in pixels)
+    surroundings = None  # A patch reaches beyond the region's pixels: rendered in full.
   else:
-    rays, pixels = camera.random_rays(ray_key, data.cameras, model.capacity.rays_per_batch)
+    rays, pixels, surroundings = train.sample_rays(ray_key, data,
+                                                   model.capacity.rays_per_batch)
   target = data.images[pixels]
   pixel_weight = data.pixel_weights[pixels]
 
   def loss_fn(params):
     outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, rays,
-                                          render_key, training=True)
+                                          render_key, training=True, surroundings=surroundings)
     ray_weights = pixel_weight * outputs["ray_complete"]
     l1 = weighted_l1(outputs["rgb"], target, ray_weights)
     loss = l1 + config.distortion_loss_weight * losses.distortion_loss(
@@ -114,9 +119,13 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
           aux["edges"], aux["weights"], aux["proposals"], ray_weights)
-    statistics = {"l1": l1, "mse": losses.weighted_mse(outputs["rgb"], target, ray_weights),
-                  "samples": aux["samples_evaluated"],
-                  "complete_fraction": jnp.mean(outputs["ray_complete"])}
+    statistics = {}
+    if loss_settings.opacity_entropy_weight > 0:
+      statistics["opacity_entropy"] = losses.opacity_entropy(aux["weights"], ray_weights)
+      loss = loss + loss_settings.opacity_entropy_weight * statistics["opacity_entropy"]
+    statistics |= {"l1": l1, "mse": losses.weighted_mse(outputs["rgb"], target, ray_weights),
+                   "samples": aux["samples_evaluated"],
+                   "complete_fraction": jnp.mean(outputs["ray_complete"])}
     if loss_settings.uses_lpips:
       patches = (-1, loss_settings.patch_size, loss_settings.patch_size, 3)
       rendered = jnp.where(ray_weights[:, None] > 0, outputs["rgb"], target)

@@ -39,6 +39,20 @@ def distortion_loss(edges, weights, scale: float, ray_weights):
   return jnp.sum(ray_weights * (pairwise + within)) / jnp.maximum(jnp.sum(ray_weights), 1e-8)
 
 
+def opacity_entropy(weights, ray_weights):
+  """Mean binary entropy (nats) of each ray's opacity a = sum_i w_i: zero for a ray that is
+  empty or opaque, log 2 for a half-transparent one. It pushes a field whose views disagree
+  towards solid surfaces and empty space instead of averaging them into a haze (the
+  entropy is clamped away from a = 0 and 1, where its gradient is infinite).
+
+  Args:
+    weights: [R, N] compositing weights; ray_weights: [R] per-ray loss weights.
+  """
+  opacity = jnp.clip(jnp.sum(weights, axis=-1), 1e-4, 1.0 - 1e-4)
+  entropy = -(opacity * jnp.log(opacity) + (1.0 - opacity) * jnp.log1p(-opacity))
+  return jnp.sum(ray_weights * entropy) / jnp.maximum(jnp.sum(ray_weights), 1e-8)
+
+
 def _searchsorted(sorted_edges, queries):
   """For each query, the last edge index <= it and the first index > it (clamped to the ends).
 

@@ -11,7 +11,9 @@ An edited scene can be a NeRF with an *edit region*: a box inside which its own 
 rendered, while before and after the box every ray sees the original scene's field, frozen
 (`variables["original"]`, same architecture). So an edit cannot move anything outside the box
 (the original's renders there are reproduced exactly), and the trained field models only what
-the box holds: its samples are spent there alone.
+the box holds: its samples are spent there alone. Since the original is frozen, what it shows in
+front of and behind the box along a training ray never changes: `region_surroundings` renders it
+once, and training steps (`render_rays(..., surroundings=...)`) evaluate the trained field alone.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from signerf_jax.camera import Rays
 from signerf_jax.errors import InputError
@@ -192,7 +195,7 @@ def _finish_edges(model: NerfModel, edges):
 
 
 def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, training: bool,
-                background=None):
+                background=None, surroundings: "RegionSurroundings | None" = None):
   """Renders rays [R] (flat batch).
 
   Args:
@@ -203,6 +206,9 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
     training: jitter samples, use appearance codes of `rays.camera_indices`, and (occupancy
       sampler) drop rays that overflow the fixed sample budget instead of evaluating them all.
     background: None (the model's background) or [R, 3] colours seen through empty space.
+    surroundings: an edit region's only: the original field around the region on these rays
+      (`region_surroundings`, shape [R]), so that only the trained field is evaluated; the
+      outputs then hold "rgb" and "accumulation" alone.
   Returns:
     outputs: `volume.volume_render`'s dict, plus "ray_complete" [R] bool (False for dropped rays).
     aux: terms for the losses and statistics, of the trained field alone (inside the edit
@@ -216,10 +222,84 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
     outputs = volume.volume_render(*samples, rays.cos_to_optical_axis,
                                    model.background if background is None else background)
     aux.update(edges=samples[2], weights=outputs["weights"])
-  else:
+  elif surroundings is None:
     outputs, ray_complete, aux = _render_edit(model, variables, rays, key, training, background)
+  else:
+    outputs, ray_complete, aux = _render_inside(model, variables, rays, key, training,
+                                                background, surroundings)
   outputs["ray_complete"] = ray_complete
   return outputs, aux
+
+
+def _region_stretch(model: NerfModel, rays: Rays, t_near, t_far, empty_at):
+  """[R] (t_in, t_out): each ray's stretch inside the edit region, within [t_near, t_far]; rays
+  that miss it get the empty stretch at `empty_at` [R], where it splits no interval of the
+  original's (ending its samples there), so they render exactly as the original does."""
+  t_in, t_out, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.edit_region)
+  t_in = jnp.clip(t_in, t_near, t_far)
+  t_out = jnp.clip(t_out, t_in, t_far)
+  crossing = hit & (t_out > t_in)
+  return tuple(jnp.where(crossing, t, empty_at) for t in (t_in, t_out))
+
+
+@struct.dataclass
+class RegionSurroundings:
+  """What the frozen original field shows along rays [R] around an edit region's stretch.
+
+  Attributes:
+    t_in, t_out: [R] the stretch (`_region_stretch`; equal for rays that miss the region).
+    before_rgb: [R, 3] colour composited in front of t_in (weighted, i.e. premultiplied).
+    before_transmittance: [R] light left at t_in.
+    after_rgb: [R, 3] colour composited behind t_out as seen from t_out, background excluded.
+    after_transmittance: [R] light left after the last sample (what the background gets).
+  """
+
+  t_in: jax.Array
+  t_out: jax.Array
+  before_rgb: jax.Array
+  before_transmittance: jax.Array
+  after_rgb: jax.Array
+  after_transmittance: jax.Array
+
+
+def region_surroundings(model: NerfModel, variables: Variables, rays: Rays
+                        ) -> RegionSurroundings:
+  """The original field's render around the edit region on `rays` [R] (no jitter): the same
+  composite `_render_edit` makes, split at the region's stretch."""
+  original = model.original
+  t_near, t_far = _ray_range(original, rays)
+  (densities, rgbs, edges), _, _ = _field_samples(
+      original, variables["original"], rays, jax.random.PRNGKey(0), False, (t_near, t_far),
+      finish=True)
+  t_in, t_out = _region_stretch(model, rays, t_near, t_far, edges[..., -1])
+  # Clipping the edges to one side of the stretch keeps the part of each interval on that side.
+  before, _ = volume.compute_weights(densities, jnp.minimum(edges, t_in[..., None]))
+  after, after_transmittance = volume.compute_weights(densities,
+                                                      jnp.maximum(edges, t_out[..., None]))
+  return RegionSurroundings(t_in, t_out, volume.composite(before, rgbs),
+                            1.0 - jnp.sum(before, axis=-1), volume.composite(after, rgbs),
+                            after_transmittance)
+
+
+def _render_inside(model: NerfModel, variables: Variables, rays: Rays, key, training: bool,
+                   background, surroundings: RegionSurroundings):
+  """The trained field on each ray's stretch inside the edit region, composited between the
+  original's precomputed surroundings: colour = before + T_before (inside + T_inside (after +
+  T_after background))."""
+  (densities, rgbs, edges), ray_complete, aux = _field_samples(
+      model, variables, rays, key, training, (surroundings.t_in, surroundings.t_out),
+      finish=False)
+  weights, inside_transmittance = volume.compute_weights(densities, edges)
+  background = model.background if background is None else background
+  behind = surroundings.after_rgb
+  if background is not None:
+    behind = behind + surroundings.after_transmittance[..., None] * background
+  through = surroundings.before_transmittance * inside_transmittance
+  rgb = surroundings.before_rgb + surroundings.before_transmittance[..., None] * (
+      volume.composite(weights, rgbs) + inside_transmittance[..., None] * behind)
+  aux.update(edges=edges, weights=weights)
+  return ({"rgb": rgb, "accumulation": 1.0 - through * surroundings.after_transmittance},
+          ray_complete, aux)
 
 
 def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, training: bool,
@@ -233,15 +313,7 @@ def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, traini
   outer, outer_complete, original_aux = _field_samples(
       original, jax.lax.stop_gradient(variables["original"]), rays, original_key, training,
       (t_near, t_far), finish=True)
-  t_in, t_out, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.edit_region)
-  t_in = jnp.clip(t_in, t_near, t_far)
-  t_out = jnp.clip(t_out, t_in, t_far)
-  # Rays that miss the region (within the modelled range) get its empty stretch at the
-  # original's last edge, where it splits none of the original's intervals: they render
-  # exactly as the original does.
-  crossing = hit & (t_out > t_in)
-  last_edge = outer[2][..., -1]
-  t_in, t_out = (jnp.where(crossing, t, last_edge) for t in (t_in, t_out))
+  t_in, t_out = _region_stretch(model, rays, t_near, t_far, outer[2][..., -1])
   inner, inner_complete, aux = _field_samples(model, variables, rays, edit_key, training,
                                               (t_in, t_out), finish=False)
   aux.update(edges=inner[2], weights=volume.compute_weights(inner[0], inner[2])[0],

@@ -5,6 +5,12 @@ gradients, the update, the occupancy grid's refresh). `training_run` runs these 
 Each step's randomness is `fold_in(state.key, state.step)`, so nothing depends on how a run was
 split into bursts or resumed.
 
+A model with an edit region trains only on the pixels whose rays cross the region (`RegionRays`):
+elsewhere it renders the frozen original exactly, so those pixels have no gradient, and spending
+the batch on them would waste most of it (an object filling a tenth of the frames leaves nine
+tenths of a uniform batch idle). The original's render around the region is computed once for
+each of these rays, so a step evaluates the trained field alone.
+
 Training is data-parallel over a device mesh (default: every device, `parallel.device_mesh`):
 each step's ray batch is split over the devices, the state and the images are replicated, and
 GSPMD all-reduces the gradients. The batch is the same for any device count, and so are the
@@ -90,6 +96,20 @@ class TrainState:
 
 
 @struct.dataclass
+class RegionRays:
+  """The training pixels whose rays cross a model's edit region, with the frozen original's
+  render around the region on each (`with_region_rays`).
+
+  Attributes:
+    pixels: [P] int32 flat indices into the images' [N, H, W].
+    surroundings: `nerf_model.RegionSurroundings` of shape [P].
+  """
+
+  pixels: jax.Array
+  surroundings: nerf_model.RegionSurroundings
+
+
+@struct.dataclass
 class TrainingData:
   """Training images on device (not donated; the same every step).
 
@@ -98,12 +118,14 @@ class TrainingData:
     cameras: N cameras.
     pixel_weights: [N, H, W] float32 per-pixel loss weights (1 = normal, 0 = ignore).
     alphas: None or [N, H, W] float32 opacity of RGBA images (`Dataset.alphas`).
+    region: for a model with an edit region, the only pixels a step samples (`RegionRays`).
   """
 
   images: jax.Array
   cameras: camera.Cameras
   pixel_weights: jax.Array
   alphas: jax.Array | None = None
+  region: RegionRays | None = None
 
   @classmethod
   def from_dataset(cls, dataset: Dataset, pixel_weights=None) -> "TrainingData":
@@ -119,6 +141,62 @@ class TrainingData:
     alphas = None if dataset.alphas is None else jnp.asarray(dataset.alphas, jnp.float32)
     return cls(jnp.asarray(dataset.images, jnp.float32),
                jax.tree.map(jnp.asarray, dataset.cameras), jnp.asarray(weights), alphas)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3))
+def _region_chunk(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
+                  image_shape: tuple[int, int, int], flat_pixels):
+  """Surroundings of the rays through `flat_pixels` [C] and whether each crosses the region."""
+  index, row, column = jnp.unravel_index(flat_pixels, image_shape)
+  rays = camera.pixel_rays(cameras, index, column + 0.5, row + 0.5)
+  original = variables["original"]
+  if model.capacity.pose_refinement:
+    rays = camera.refine_rays(rays, original["params"][nerf_model.POSE_ADJUSTMENTS])
+  surroundings = nerf_model.region_surroundings(model, variables, rays)
+  return surroundings, surroundings.t_out > surroundings.t_in
+
+
+def with_region_rays(data: TrainingData, model: nerf_model.NerfModel, variables,
+                     chunk_size: int = 8192) -> TrainingData:
+  """`data` with its `RegionRays` when `model` has an edit region (`variables` hold the
+  original's): every pixel of non-zero weight whose ray crosses the region."""
+  if model.edit_region is None or data.region is not None:
+    return data
+  image_shape = tuple(data.pixel_weights.shape)
+  candidates = np.flatnonzero(np.asarray(data.pixel_weights).reshape(-1) > 0).astype(np.int32)
+  kept_pixels, kept_surroundings = [], []
+  for start in range(0, len(candidates), chunk_size):
+    chunk = candidates[start:start + chunk_size]
+    padded = np.pad(chunk, (0, chunk_size - len(chunk)), mode="edge")
+    surroundings, crossing = _region_chunk(model, variables, data.cameras, image_shape, padded)
+    crossing = np.asarray(crossing)[:len(chunk)]
+    kept_pixels.append(chunk[crossing])
+    kept_surroundings.append(jax.tree.map(lambda array: np.asarray(array)[:len(chunk)][crossing],
+                                          surroundings))
+  pixels = np.concatenate(kept_pixels) if kept_pixels else np.zeros(0, np.int32)
+  if not len(pixels):
+    raise InputError(f"no training pixel sees the edit region {model.edit_region}",
+                     field="edit_region")
+  surroundings = jax.tree.map(lambda *arrays: jnp.asarray(np.concatenate(arrays)),
+                              *kept_surroundings)
+  return data.replace(region=RegionRays(jnp.asarray(pixels), surroundings))
+
+
+def sample_rays(key, data: TrainingData, batch_size: int):
+  """A uniform random batch of training pixels' rays: over every pixel, or over the region's.
+
+  Returns:
+    rays: Rays [batch_size].
+    pixels: (camera_index, row, column), each [batch_size] int32.
+    surroundings: the region's `RegionSurroundings` [batch_size], or None.
+  """
+  if data.region is None:
+    rays, pixels = camera.random_rays(key, data.cameras, batch_size)
+    return rays, pixels, None
+  choice = jax.random.randint(key, (batch_size,), 0, data.region.pixels.shape[0])
+  pixels = jnp.unravel_index(data.region.pixels[choice], data.pixel_weights.shape)
+  rays = camera.pixel_rays(data.cameras, pixels[0], pixels[2] + 0.5, pixels[1] + 0.5)
+  return rays, pixels, jax.tree.map(lambda array: array[choice], data.region.surroundings)
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
@@ -195,8 +273,8 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
   """
   ray_key, render_key, background_key = jax.random.split(
       jax.random.fold_in(state.key, state.step), 3)
-  rays, (index, row, column) = camera.random_rays(ray_key, data.cameras,
-                                                  model.capacity.rays_per_batch)
+  rays, (index, row, column), surroundings = sample_rays(ray_key, data,
+                                                        model.capacity.rays_per_batch)
   target = data.images[index, row, column]
   pixel_weight = data.pixel_weights[index, row, column]
   background = None
@@ -209,8 +287,8 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     transparency = (1.0 - data.alphas[index, row, column])[:, None]
     target = target + transparency * (background - model.background)
   if mesh is not None:
-    rays, target, pixel_weight, background = jax.lax.with_sharding_constraint(
-        (rays, target, pixel_weight, background), parallel.batch_sharded(mesh))
+    rays, target, pixel_weight, background, surroundings = jax.lax.with_sharding_constraint(
+        (rays, target, pixel_weight, background, surroundings), parallel.batch_sharded(mesh))
   if model.capacity.coarse_to_fine > 0:
     state = state.replace(variables={**state.variables, "level_weights": level_weights_at(
         model.capacity.num_levels, progress, model.capacity.coarse_to_fine)})
@@ -220,7 +298,8 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     if model.capacity.pose_refinement:
       refined = camera.refine_rays(rays, params[nerf_model.POSE_ADJUSTMENTS])
     outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, refined,
-                                          render_key, training=True, background=background)
+                                          render_key, training=True, background=background,
+                                          surroundings=surroundings)
     ray_weights = pixel_weight * outputs["ray_complete"]
     mse = losses.weighted_mse(outputs["rgb"], target, ray_weights)
     loss = mse + config.distortion_loss_weight * losses.distortion_loss(

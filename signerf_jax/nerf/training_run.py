@@ -24,7 +24,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import Capacity, CapacityRules, SceneInfo, derive_capacity
 from signerf_jax.nerf.train import (TrainConfig, TrainingData, TrainState, init_state,
-                                    make_train_step)
+                                    make_train_step, with_region_rays)
 
 MODEL_FILE = "model.json"
 
@@ -49,6 +49,7 @@ class Trainer:
   def __post_init__(self):
     self.mesh = parallel.device_mesh() if self.mesh is None else self.mesh
     self._step_fn = make_train_step(self.model, self.config, self.mesh)
+    self.data = with_region_rays(self.data, self.model, self.state.variables)
     # Placed once: the step would otherwise copy the images to every device at each call.
     self.data, self.state = parallel.replicate((self.data, self.state), self.mesh)
 

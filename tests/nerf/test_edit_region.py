@@ -17,6 +17,7 @@ import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
 from signerf_jax import camera
+from signerf_jax.editing import finetune
 from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import capacity, evaluate, render, sampling, train, training_run, volume
@@ -165,21 +166,101 @@ def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
 
 
 def test_the_proposal_sampler_keeps_rays_missing_the_region_too(sphere):
-  dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
-  scene = capacity.SceneInfo.from_dataset(dataset)
-  derived = capacity.derive_capacity(scene, capacity.CapacityRules(samples_per_batch=4096))
-  model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
-                                                          samples_per_ray=8, mlp_width=32))
-  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
-  region_model = dataclasses.replace(model, edit_region=REGION)
-  region_variables = {**nerf_model.init_variables(region_model, jax.random.PRNGKey(1)),
-                      "original": variables}
-  cameras = dataset.cameras.take([1])
-  before = render.render_cameras(model, variables, cameras)["rgb"][0]
+  region_model, region_variables = proposal_region_model(sphere)
+  cameras = sphere.cameras.take([1])
+  before = render.render_cameras(region_model.original, region_variables["original"],
+                                 cameras)["rgb"][0]
   after = render.render_cameras(region_model, region_variables, cameras)["rgb"][0]
   missed = ~region_hits(cameras, 0)
   np.testing.assert_allclose(after[missed], before[missed], atol=1e-6)
   assert not np.allclose(after[~missed], before[~missed])
+
+
+def proposal_region_model(sphere):
+  """An unbounded proposal-sampler model of the sphere scene with the edit region, untrained."""
+  dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
+  scene = capacity.SceneInfo.from_dataset(dataset)
+  derived = capacity.derive_capacity(scene, capacity.CapacityRules(samples_per_batch=4096))
+  model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
+                                                          samples_per_ray=8, mlp_width=32),
+                               edit_region=REGION)
+  return model, {**nerf_model.init_variables(model, jax.random.PRNGKey(1)),
+                 "original": nerf_model.init_variables(model.original, jax.random.PRNGKey(0))}
+
+
+@pytest.mark.parametrize("sampler", ["occupancy", "proposal"])
+def test_precomputed_surroundings_render_as_the_merged_fields(sphere, edited, sampler):
+  """Training renders the trained field between the original's precomputed render in front of
+  and behind the region: the same image as merging both fields' samples, for rays that cross
+  the region, start inside it or miss it."""
+  if sampler == "occupancy":
+    model, variables = edited[2].model, edited[2].state.variables
+  else:
+    model, variables = proposal_region_model(sphere)
+  rays = jax.tree.map(lambda array: array.reshape(-1, *array.shape[2:]),
+                      camera.image_rays(sphere.cameras, 3))
+  inside_origin = jax.tree.map(lambda array: array[:4], rays).replace(
+      origins=jnp.tile(jnp.array([[0.3, 0.0, 0.0]]), (4, 1)))
+  rays = jax.tree.map(lambda *arrays: jnp.concatenate(arrays), rays, inside_origin)
+  surroundings = nerf_model.region_surroundings(model, variables, rays)
+  crossing = np.asarray(surroundings.t_out > surroundings.t_in)
+  assert crossing.any() and (~crossing).any() and crossing[-4:].all()
+  key = jax.random.PRNGKey(0)
+  merged, _ = nerf_model.render_rays(model, variables, rays, key, training=False)
+  split, _ = nerf_model.render_rays(model, variables, rays, key, training=False,
+                                    surroundings=surroundings)
+  for name in ("rgb", "accumulation"):
+    np.testing.assert_allclose(split[name], merged[name], atol=2e-5, err_msg=name)
+
+
+def test_an_edit_region_trains_only_on_the_pixels_whose_rays_cross_it(sphere, edited):
+  model, variables = edited[2].model, edited[2].state.variables
+  weights = np.ones(sphere.images.shape[:3], np.float32)
+  weights[1] = 0.0
+  data = train.TrainingData.from_dataset(sphere, weights)
+  region = train.with_region_rays(data, model, variables, chunk_size=1000).region
+  crossing = np.stack([region_hits(sphere.cameras, view) for view in range(len(weights))])
+  crossing[1] = False
+  np.testing.assert_array_equal(np.sort(np.asarray(region.pixels)), np.flatnonzero(crossing))
+  _, (index, row, column), surroundings = train.sample_rays(jax.random.PRNGKey(3),
+                                                            data.replace(region=region), 512)
+  assert crossing[index, row, column].all()
+  assert surroundings.t_in.shape == (512,)
+
+
+def test_an_edit_region_no_training_pixel_sees_is_an_error(sphere, edited):
+  model = dataclasses.replace(edited[2].model, edit_region=((2.0, 2.0, 2.0), (2.5, 2.5, 2.5)))
+  with pytest.raises(InputError, match="no training pixel sees the edit region"):
+    train.with_region_rays(train.TrainingData.from_dataset(sphere), model,
+                           edited[2].state.variables)
+
+
+@pytest.mark.parametrize("entropy_weight", [0.0, 0.05])
+def test_fine_tuning_an_edit_region_learns_it_with_or_without_the_opacity_prior(
+    sphere, edited, tmp_path, entropy_weight):
+  model, original_variables, _ = edited
+  region_model = dataclasses.replace(model, edit_region=REGION)
+  red = dataclasses.replace(sphere, images=np.where(sphere.depths[..., None] > 0, RED,
+                                                    sphere.images))
+  loss_settings = finetune.FinetuneLosses(opacity_entropy_weight=entropy_weight)
+  trainer = finetune.finetune(red, tmp_path, model=region_model,
+                              init_variables={"params": original_variables["params"],
+                                              "original": original_variables},
+                              config=dataclasses.replace(SMALL_CONFIG, steps=40),
+                              loss_settings=loss_settings, edited_bounds=REGION,
+                              progress=False)
+  statistics = trainer.last_statistics
+  assert np.isfinite(statistics["loss"])
+  assert ("opacity_entropy" in statistics) == (entropy_weight > 0)
+  if entropy_weight:
+    assert statistics["loss"] >= statistics["l1"] + entropy_weight * statistics["opacity_entropy"]
+  cameras = sphere.cameras.take([0])
+  after = render.render_cameras(trainer.model, trainer.state.variables, cameras)["rgb"][0]
+  inside = region_hits(cameras, 0) & (sphere.depths[0] > 0)
+  assert after[inside].mean(0)[0] > 0.7
+  with count_compilations() as compiled:
+    trainer.run(until_step=trainer.step + 3, progress=False)
+  assert compiled == []
 
 
 @pytest.mark.parametrize("region", [((0, 0, 0), (0, 1, 1)), ((1, 1, 1), (0, 0, 0))])

@@ -85,3 +85,21 @@ def test_gradient_scaling_keeps_values_and_scales_gradients_by_squared_distance(
       densities, c, edges, 2.0)[1]))(rgbs)
   np.testing.assert_allclose(colour_gradient[0, :, 0], [0.0025, 0.04, 0.4225, 1.0], rtol=1e-5)
   assert np.all(np.isfinite(colour_gradient))
+
+
+@pytest.mark.parametrize("opacity, expected", [(0.0, 0.0), (1.0, 0.0), (0.5, np.log(2.0)),
+                                               (0.1, -(0.1 * np.log(0.1) + 0.9 * np.log(0.9)))])
+def test_opacity_entropy_is_zero_for_empty_and_opaque_rays_and_largest_at_half(opacity,
+                                                                               expected):
+  weights = jnp.array([[opacity / 2, opacity / 2, 0.0]])
+  value = losses.opacity_entropy(weights, jnp.ones(1))
+  np.testing.assert_allclose(value, expected, atol=2e-3)
+
+
+def test_opacity_entropy_gradients_are_finite_and_push_away_from_half():
+  weights = jnp.array([[0.0, 0.0], [0.5, 0.5], [0.3, 0.0], [0.4, 0.3], [1e-12, 0.0]])
+  gradient = jax.grad(lambda w: losses.opacity_entropy(w, jnp.ones(5)))(weights)
+  assert np.all(np.isfinite(gradient))
+  assert gradient[2, 0] < 0 < gradient[3, 0]  # 0.3 towards 0 (descent), 0.7 towards 1
+  ignored = jax.grad(lambda w: losses.opacity_entropy(w, jnp.array([1.0, 0, 0, 0, 0])))(weights)
+  np.testing.assert_array_equal(ignored[1:], 0.0)
