@@ -4,7 +4,9 @@ For an SD1.5-shaped UNet (block_out_channels 320/640/1280/1280, cross_attention_
 as under classifier-free guidance, text states (2, 77, 768)) at each latent size: seconds per
 forward of our jitted model and of diffusers (torch, `threads` threads), their ratio
 `jax_over_torch`, compile time, FLOPs (counted by torch's FlopCounterMode on the reference
-forward) and achieved GFLOP/s against the CPU's fp32 peak, XLA's memory plan, the largest output
+forward) and achieved GFLOP/s against the CPU's fp32 peak as this run measures it (the best
+GFLOP/s of large jitted fp32 matmuls, before and after the models, same threads), XLA's memory
+plan, the largest output
 difference from torch (both run the same random weights, converted through our loader's name and
 layout mapping), and the bf16-compute option's speed and error. JAX and torch runs alternate and
 medians are reported, so a busy machine slows both alike; process CPU seconds per forward are
@@ -40,8 +42,9 @@ from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 
 RESULTS = Path(__file__).resolve().parent / "results"
-# ~166 GFLOP/s: the fp32 peak the issue quotes for this CPU; an AVX-512 FMA loop reaches ~233.
-FP32_PEAK_GFLOPS = 166.0
+# The square fp32 matmul that measures the peak (2 n^3 FLOPs; ~0.1 s here), and how often.
+PEAK_MATMUL_SIZE = 2048
+PEAK_REPEATS = 10
 SD15_UNET = dict(block_out_channels=(320, 640, 1280, 1280), cross_attention_dim=768,
                  attention_head_dim=8, layers_per_block=2, sample_size=64)
 
@@ -88,6 +91,20 @@ def flax_params(module, torch_model):
   return weights.params_from_tensors(module, tensors, type(torch_model).__name__)
 
 
+def matmul_gflops_per_second(size: int = PEAK_MATMUL_SIZE, repeats: int = PEAK_REPEATS
+                             ) -> float:
+  """The best GFLOP/s of a jitted [size, size] fp32 matmul: the peak a dense kernel reaches on
+  this machine with the threads XLA uses (a 2048^3 matmul reached 81% of an AVX-512 FMA loop's
+  233 GFLOP/s here: ../shared/notes/cpu-performance.md)."""
+  keys = jax.random.split(jax.random.PRNGKey(0))
+  left, right = (jax.random.normal(key, (size, size), jnp.float32) for key in keys)
+  multiply = jax.jit(jnp.matmul).lower(left, right).compile()
+  jax.block_until_ready(multiply(left, right))
+  best = min(seconds(lambda: jax.block_until_ready(multiply(left, right)))
+             for _ in range(repeats))
+  return 2 * size**3 / 1e9 / best
+
+
 def reference_flops(forward) -> float:
   from torch.utils.flop_counter import FlopCounterMode  # pylint: disable=g-import-not-at-top
   counter = FlopCounterMode(display=False)
@@ -115,7 +132,7 @@ def time_side_by_side(forwards: dict, repeats: int) -> dict[str, list[float]]:
 
 
 def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, repeats,
-            bf16_function=None) -> dict:
+            peak_gflops: float, bf16_function=None) -> dict:
   """Compiles, checks agreement, times JAX against torch (and the bf16 variant, interleaved)."""
   start = time.perf_counter()
   compiled = jax_function.lower(*jax_args).compile()
@@ -137,7 +154,7 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
       "compile_seconds": compile_seconds, "gflop": flops / 1e9,
       "jax_gflops_per_second": flops / 1e9 / median["jax"],
       "torch_gflops_per_second": flops / 1e9 / median["torch"],
-      "jax_fraction_of_fp32_peak": flops / 1e9 / median["jax"] / FP32_PEAK_GFLOPS,
+      "jax_fraction_of_measured_peak": flops / 1e9 / median["jax"] / peak_gflops,
       "jax_memory_plan": memory_plan(compiled),
       "max_abs_difference_from_torch": difference,
       "output_abs_max": float(np.abs(torch_output).max()),
@@ -203,6 +220,7 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
     return jax.jit(forward)
 
   results = {}
+  peaks = [matmul_gflops_per_second()]
   generator = torch.Generator().manual_seed(seed)
   for size in latent_sizes:
     sample = torch.randn(batch, 4, size, size, generator=generator)
@@ -219,7 +237,7 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
         flops = reference_flops(torch_forward)
         results[f"unet_{size}x{size}"] = compare(
             f"unet {size}x{size}", unet_function(unet), (unet_params,) + jax_inputs,
-            torch.no_grad()(torch_forward), torch_output, flops, repeats,
+            torch.no_grad()(torch_forward), torch_output, flops, repeats, peaks[0],
             unet_function(unet_bf16) if bf16 else None)
 
     if "unet_controlnet" in models:
@@ -233,8 +251,12 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
         results[f"unet_controlnet_{size}x{size}"] = compare(
             f"unet+controlnet {size}x{size}", controlled_function(unet, controlnet),
             ((unet_params, controlnet_params),) + jax_inputs + (nhwc(image),),
-            torch.no_grad()(torch_controlled), torch_output, flops, repeats,
+            torch.no_grad()(torch_controlled), torch_output, flops, repeats, peaks[0],
             controlled_function(unet_bf16, controlnet_bf16) if bf16 else None)
+  peaks.append(matmul_gflops_per_second())
+  results["measured_peak"] = {
+      "matmul_size": PEAK_MATMUL_SIZE, "gflops_per_second_before_after": peaks,
+      "note": "the fractions use the 'before' figure; 'after' shows whether the load changed"}
   results["attention_options"] = dataclasses.asdict(attention)
   results["threads"] = threads
   return results
@@ -250,7 +272,7 @@ def main(argv=None) -> int:
   results = benchmark()
   results["machine"] = {
       "processor": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-      "jax": jax.__version__, "fp32_peak_gflops": FP32_PEAK_GFLOPS,
+      "jax": jax.__version__,
       "load_average_before_after": [load_before[0], os.getloadavg()[0]],
       "process_peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
       "note": "JAX and torch runs interleave, so other jobs (see the load averages) slow both",

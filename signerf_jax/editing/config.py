@@ -44,7 +44,7 @@ from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, OpenUnitIn
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[1] / "default_model" / "weights"
 SelectionKind = Literal["box", "proxy"]
 NerfUpdate = Literal["auto", "finetune", "retrain"]
-Propagation = Literal["sheet", "independent"]
+Propagation = Literal["sheet", "independent", "reference_views"]
 # A scheduler class replacing the checkpoint's ("" keeps it).
 SchedulerOverride = Literal["", "ddim", "dpm_solver_multistep", "euler_ancestral"]  # "" first
 PRIMITIVE_PREFIX = "primitive:"
@@ -225,8 +225,10 @@ class UpdateConfig:
       of devices (the last batch is padded). A fixed per-device size keeps every device's
       program the same whatever the device count.
     propagation: "sheet" inpaints each view in the empty slot of the reference sheet (the
-      paper's image set update); "independent" inpaints each view on its own, with no sheet
-      (the paper's baseline for 3D consistency, for comparisons).
+      paper's image set update); for comparisons, "independent" inpaints each view on its own,
+      with no sheet (the paper's baseline for 3D consistency), and "reference_views" updates no
+      view: the NeRF learns the sheet's tiles at the reference cameras alone (what the image
+      set update adds).
   """
 
   views_per_device: PositiveInt = 4

@@ -22,6 +22,16 @@ def as_rgb(image: np.ndarray) -> np.ndarray:
   return np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image
 
 
+def outline(image: np.ndarray, mask: np.ndarray, color=(1.0, 0.1, 0.1)) -> np.ndarray:
+  """[H, W, 3] float32: `image` ([H, W] or [H, W, 3] in [0, 1]) with the boundary pixels of
+  `mask` ([H, W] bool: its pixels with a neighbour outside it) drawn in `color`."""
+  image = as_rgb(image).copy()
+  inside = np.pad(np.asarray(mask, bool), 1)
+  interior = inside[:-2, 1:-1] & inside[2:, 1:-1] & inside[1:-1, :-2] & inside[1:-1, 2:]
+  image[inside[1:-1, 1:-1] & ~interior] = color
+  return image
+
+
 def image_grid(rows: Sequence[Sequence[np.ndarray]], labels: Sequence[Sequence[str]] | None = None
                ) -> np.ndarray:
   """Images laid out in rows (each cell resized to the first image's size, enlarged together),

@@ -17,6 +17,7 @@ import numpy as np
 from signerf_jax import camera as camera_lib
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data.dataset import Dataset
+from signerf_jax.editing import figures
 from signerf_jax.editing import select as select_lib
 from signerf_jax.editing.config import SelectionConfig
 from signerf_jax.errors import InputError
@@ -165,9 +166,7 @@ def placement_figure(dataset: Dataset, view: int, selection: SelectionConfig,
   image = np.asarray(dataset.images[view], np.float32).copy()
   red = np.asarray([1.0, 0.1, 0.1], np.float32)
   image[hit] = 0.55 * image[hit] + 0.45 * red
-  inside = np.pad(hit, 1)
-  interior = (inside[:-2, 1:-1] & inside[2:, 1:-1] & inside[1:-1, :-2] & inside[1:-1, 2:])
-  image[hit & ~interior] = red
+  image = figures.outline(image, hit, red)
   if pixel is not None:
     column, row = int(pixel[0]), int(pixel[1])
     arm = max(2, dataset.cameras.height // 50)

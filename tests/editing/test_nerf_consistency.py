@@ -79,6 +79,6 @@ def test_the_figure_is_drawn_whatever_the_numbers(experiment, tmp_path):
   measured = {"fit_psnr": summary, "solidity": {"iou": summary, "mean_opacity": unmeasured},
               "correspondences": {"relative_change": -0.2, "interval": [-0.2, -0.2]}}
   arms = {name: {"directory": str(tmp_path), "nerf_consistency": measured}
-          for name in ("sheet", "independent")}
+          for name in ("sheet", "independent", "reference_views")}
   image = experiment.figure({"demo": {"arms": arms}})
   assert image.ndim == 3 and image.shape[2] == 3 and np.isfinite(image).all()

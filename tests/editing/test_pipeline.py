@@ -3,6 +3,7 @@ skips finished stages, a changed setting redoes exactly the stages that depend o
 edited dataset is a nerfstudio dataset whose unmasked pixels are the originals."""
 
 import json
+import shutil
 from pathlib import Path
 
 import gin
@@ -94,6 +95,7 @@ def test_the_evaluation_measures_fit_solidity_and_correspondences_on_the_nerf(fi
   assert max(correspondences["size"]) == 48
   assert correspondences["views"] == min(3, metrics["num_eval_views"])
   assert correspondences["pairs"] >= 1
+  assert (directory / "evaluation" / "solidity.png").is_file()
 
 
 def test_the_edited_dataset_keeps_unmasked_pixels_and_records_its_provenance(finished_edit,
@@ -173,6 +175,28 @@ def test_without_an_edit_region_the_whole_nerf_is_fine_tuned(finished_edit):
   redone = {line.split("] ")[1].split(":")[0] for line in lines if REUSED not in line}
   assert redone == {"finetune"}, lines
   assert edit.nerf(1).model.edit_region is None
+
+
+def test_the_reference_views_alone_become_the_edited_dataset(finished_edit, tmp_path):
+  """UpdateConfig.propagation = 'reference_views' (a baseline): no view is inpainted; the NeRF
+  learns the sheet's tiles at the reference cameras, and the evaluation measures its fit to
+  them."""
+  directory, _, chosen = finished_edit
+  directory = Path(shutil.copytree(directory, tmp_path / "edit"))
+  settings = settings_of(chosen + ["UpdateConfig.propagation = 'reference_views'"])
+  lines = []
+  stages.run_edit(directory, settings, progress=False, log=lines.append)
+  redone = {line.split("] ")[1].split(":")[0] for line in lines if REUSED not in line}
+  assert redone == {"update", "dataset", "finetune", "evaluate"}, lines
+  assert "no view updated" in stage_lines(lines, "update")[-1]
+  edited = load_dataset(directory / "dataset", split="all")
+  sheet = np.load(directory / "sheet" / "sheet.npz")
+  layout = stages.EditContext(EditDirectory(directory), settings).layout
+  assert edited.num_images == layout.num_tiles and edited.width == 16
+  np.testing.assert_allclose(edited.images[0], sheet["rgb"][:16, :16], atol=1 / 255)
+  metrics = files.read_json(directory / "evaluation" / "metrics.json")
+  fit = metrics["nerf_consistency"]["fit_psnr"]
+  assert len(fit["per_view"]) == layout.num_tiles and np.isfinite(fit["mean"])
 
 
 def test_a_command_saves_the_bindings_that_a_later_command_reads_back(finished_edit, capsys):

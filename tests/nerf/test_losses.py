@@ -100,6 +100,6 @@ def test_opacity_entropy_gradients_are_finite_and_push_away_from_half():
   weights = jnp.array([[0.0, 0.0], [0.5, 0.5], [0.3, 0.0], [0.4, 0.3], [1e-12, 0.0]])
   gradient = jax.grad(lambda w: losses.opacity_entropy(w, jnp.ones(5)))(weights)
   assert np.all(np.isfinite(gradient))
-  assert gradient[2, 0] < 0 < gradient[3, 0]  # 0.3 towards 0 (descent), 0.7 towards 1
+  assert gradient[3, 0] < 0 < gradient[2, 0]  # descent takes 0.3 towards 0, 0.7 towards 1
   ignored = jax.grad(lambda w: losses.opacity_entropy(w, jnp.array([1.0, 0, 0, 0, 0])))(weights)
   np.testing.assert_array_equal(ignored[1:], 0.0)

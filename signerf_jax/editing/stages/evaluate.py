@@ -28,7 +28,7 @@ from signerf_jax.editing.config import as_json
 from signerf_jax.editing.stages import nerf_consistency
 from signerf_jax.editing.stages.context import EditContext, evenly_spaced
 from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
-from signerf_jax.editing.stages.propagation import edited_images
+from signerf_jax.editing.stages.propagation import EditedViews, edited_views
 from signerf_jax.metrics import background
 from signerf_jax.nerf import render
 
@@ -55,41 +55,39 @@ def _held_out_conditioning(context: EditContext, nerf) -> conditioning_lib.Condi
                                        VIEWS_PER_CHUNK) for chunk in chunks])
 
 
-def _adherence(context: EditContext, originals, edited, conditioned, before, after
-               ) -> dict[str, Any]:
+def _adherence(context: EditContext, views: EditedViews, before, after) -> dict[str, Any]:
   """Prompt colour (and proxy shape) adherence of the image set and the NeRF renders."""
-  prompt = context.settings.edit.prompt
+  prompt, conditioned = context.settings.edit.prompt, views.conditioning
   metrics = {"prompt_color_adherence": {
-      "image_set": evaluation.prompt_color_adherence(prompt, edited, conditioned.selected),
+      "image_set": evaluation.prompt_color_adherence(prompt, views.edited, conditioned.selected),
       "nerf_renders": evaluation.prompt_color_adherence(prompt, after, before.selected)}}
   if context.selection.kind == "proxy":
     metrics["shape_iou"] = {
-        "image_set": evaluation.shape_adherence(originals, edited, conditioned.selected,
-                                                conditioned.mask),
+        "image_set": evaluation.shape_adherence(views.originals, views.edited,
+                                                conditioned.selected, conditioned.mask),
         "nerf_renders": evaluation.shape_adherence(before.render, after, before.selected,
                                                    before.mask)}
   return metrics
 
 
-def _consistency(context: EditContext, visible, originals, edited, conditioned
-                 ) -> dict[str, Any]:
+def _consistency(context: EditContext, edited_views: EditedViews) -> dict[str, Any]:
   """Independent per-view edits of some edited views, against the sheet-propagated ones."""
-  dataset = context.dataset
-  chosen = evenly_spaced(np.arange(len(visible)), context.settings.evaluation.independent_views)
-  views = update_lib.SlotViews(originals[chosen], conditioned.mask[chosen],
-                               conditioned.control[chosen],
-                               context.tile_boxes(dataset.cameras)[visible[chosen]])
+  chosen = evenly_spaced(np.arange(edited_views.cameras.num_cameras),
+                         context.settings.evaluation.independent_views)
+  cameras, conditioned = edited_views.cameras.take(chosen), edited_views.conditioning
+  edited = edited_views.edited[chosen]
+  views = update_lib.SlotViews(edited_views.originals[chosen], conditioned.mask[chosen],
+                               conditioned.control[chosen], context.tile_boxes(cameras))
   keys = np.repeat(generation.seed_key(context.settings.edit.seed)[None], len(chosen), axis=0)
   start = time.perf_counter()
   independent = evaluation.independent_edits(context.generator(1), context.layout, views, keys)
   seconds = time.perf_counter() - start
   consistency = evaluation.consistency_comparison(
-      {"original": views.images, "sheet_propagated": edited[chosen], "independent": independent},
-      dataset.cameras.take(visible[chosen]), conditioned.mask[chosen] > 0,
-      context.settings.consistency)
+      {"original": views.images, "sheet_propagated": edited, "independent": independent},
+      cameras, conditioned.mask[chosen] > 0, context.settings.consistency)
   shown = min(FIGURE_VIEWS, len(chosen))
   files.write_image(context.directory.path("evaluation", "independent_edits.png"),
-                    figures.image_grid([list(views.images[:shown]), list(edited[chosen][:shown]),
+                    figures.image_grid([list(views.images[:shown]), list(edited[:shown]),
                                         list(independent[:shown])],
                                        [["original"] * shown, ["sheet propagated"] * shown,
                                         ["independent"] * shown]))
@@ -152,22 +150,20 @@ def evaluate_edit(context: EditContext) -> str:
                              "num_eval_views": context.eval_cameras.num_cameras}
   metrics["background"] = background.background_preservation(before.render, after,
                                                               before.mask > 0)
-  # The training views that show the selection: originals and their sheet-propagated edits.
-  visible = context.visible_views()
-  originals, edited = context.dataset.images[visible], edited_images(context, iteration, visible)
-  conditioned = context.conditioning_of_views().take(visible)
-  metrics.update(_adherence(context, originals, edited, conditioned, before, after))
+  # The views the NeRF learned the edit from, before and after it.
+  views = edited_views(context, iteration)
+  metrics.update(_adherence(context, views, before, after))
   part_done()
   if config.independent_views:
-    metrics.update(_consistency(context, visible, originals, edited, conditioned))
+    metrics.update(_consistency(context, views))
     part_done()
   if config.clip_model:
-    metrics["clip_directional_similarity"] = _clip_similarity(context, originals, edited, before,
-                                                              after)
+    metrics["clip_directional_similarity"] = _clip_similarity(context, views.originals,
+                                                              views.edited, before, after)
     part_done()
   if measure_nerf:
     metrics["nerf_consistency"] = nerf_consistency.measure(
-        context, iteration, original, edited_nerf, before.selected,
+        context, views, original, edited_nerf, before.selected,
         context.settings.nerf_consistency)
     part_done()
   outputs = _figures(context, iteration, (original, edited_nerf), before, after)

@@ -5,12 +5,13 @@ converges to a crisp object, while independent per-view edits are averaged into 
 measurements (`metrics.solidity`), each per view (or view pair) with a bootstrap interval, so
 that two edits are compared by whether their intervals overlap:
 
-  fit              PSNR of the edited NeRF's renders at the training views that show the
-                   selection against the edited images it was trained on, inside their masks;
+  fit              PSNR of the edited NeRF's renders at the views it learned the edit from
+                   (`propagation.edited_views`) against their edited images, inside the masks;
   solidity         at held-out cameras, the edited NeRF's opacity inside the selection's box
                    (its lowest `support_clearance` along the up axis left out: the surface the
                    object stands on is not the object) against the proxy's visible silhouette:
-                   IoU of (opacity > threshold) and the mean opacity inside the silhouette;
+                   IoU of (opacity > threshold) and the mean opacity inside the silhouette
+                   (figure: evaluation/solidity.png);
   correspondences  verified SIFT correspondences (`metrics.consistency`, epipolar inliers)
                    between renders of the edited NeRF at neighbouring held-out cameras, rendered
                    at `correspondence_size` px so that SIFT finds enough of them, against the
@@ -25,9 +26,11 @@ from typing import Any
 import numpy as np
 
 from signerf_jax import camera as camera_lib
+from signerf_jax import files
+from signerf_jax.editing import figures
 from signerf_jax.editing.config import NerfConsistencySettings
 from signerf_jax.editing.stages.context import EditContext, evenly_spaced
-from signerf_jax.editing.stages.propagation import edited_images
+from signerf_jax.editing.stages.propagation import EditedViews
 from signerf_jax.geometry import reference_cameras
 from signerf_jax.metrics import consistency, solidity
 from signerf_jax.nerf import render
@@ -52,23 +55,26 @@ def _summary(values: np.ndarray, settings: NerfConsistencySettings) -> dict[str,
           "per_view": [None if np.isnan(value) else float(value) for value in values]}
 
 
-def _fit(context: EditContext, nerf, iteration: int, settings: NerfConsistencySettings
-         ) -> dict[str, Any]:
-  visible = context.visible_views()
-  masks = context.conditioning_of_views().take(visible).mask
-  renders = render.render_cameras(nerf.model, nerf.variables,
-                                  context.dataset.cameras.take(visible))["rgb"]
-  per_view = solidity.masked_psnr(renders, edited_images(context, iteration, visible), masks)
+def _fit(nerf, views: EditedViews, settings: NerfConsistencySettings) -> dict[str, Any]:
+  renders = render.render_cameras(nerf.model, nerf.variables, views.cameras)["rgb"]
+  per_view = solidity.masked_psnr(renders, views.edited, views.conditioning.mask)
   return _summary(per_view, settings)
 
 
 def _solidity(context: EditContext, nerf, silhouettes: np.ndarray,
               settings: NerfConsistencySettings) -> dict[str, Any]:
+  """The solidity summaries; writes evaluation/solidity.png (per held-out view, the render and
+  the opacity inside the box, the proxy's silhouette outlined)."""
   box = opacity_box(context.selection.bounds,
                     np.asarray(reference_cameras.scene_up(context.dataset.cameras)),
                     settings.support_clearance)
-  opacity = render.render_cameras(nerf.model, nerf.variables, context.eval_cameras,
-                                  selection_box=box)["selection_weight"]
+  renders = render.render_cameras(nerf.model, nerf.variables, context.eval_cameras,
+                                  selection_box=box)
+  opacity = renders["selection_weight"]
+  files.write_image(context.directory.path("evaluation", "solidity.png"), figures.image_grid(
+      [[figures.outline(image, silhouette) for image, silhouette in zip(images, silhouettes)]
+       for images in (renders["rgb"], opacity)],
+      [["edited NeRF"] * len(opacity), ["opacity in the box"] * len(opacity)]))
   per_view = solidity.solidity(opacity, silhouettes, settings.opacity_threshold)
   return {name: _summary(values, settings) for name, values in per_view.items()}
 
@@ -111,10 +117,11 @@ def _correspondences(context: EditContext, original, edited,
                       if len(counts["edited"]) else None}
 
 
-def measure(context: EditContext, iteration: int, original, edited, silhouettes: np.ndarray,
+def measure(context: EditContext, views: EditedViews, original, edited, silhouettes: np.ndarray,
             settings: NerfConsistencySettings) -> dict[str, Any]:
-  """fit, solidity ({iou, mean_opacity}) and correspondences of the edited NeRF (see the module
-  docstring); `silhouettes` [N, H, W] bool are the proxy's at the held-out cameras."""
-  return {"fit_psnr": _fit(context, edited, iteration, settings),
+  """fit (to `views`, the edited images it learned), solidity ({iou, mean_opacity}) and
+  correspondences of the edited NeRF (see the module docstring); `silhouettes` [N, H, W] bool
+  are the proxy's at the held-out cameras."""
+  return {"fit_psnr": _fit(edited, views, settings),
           "solidity": _solidity(context, edited, silhouettes, settings),
           "correspondences": _correspondences(context, original, edited, settings)}

@@ -1,21 +1,28 @@
 """The update and dataset stages (paper, Sec. 3 step 6, "Image Set Update"): every training view
 that shows the selection is inpainted in the empty slot of the sheet (or, for comparisons, on its
-own: `UpdateConfig.propagation`), and the edited views are written as a nerfstudio dataset with
-the masks, control depth and provenance alongside."""
+own, or not at all: `UpdateConfig.propagation`), and the edited views are written as a nerfstudio
+dataset with the masks, control depth and provenance alongside."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
+from signerf_jax import camera as camera_lib
 from signerf_jax import files
+from signerf_jax.editing import conditioning as conditioning_lib
 from signerf_jax.editing import edited_dataset
+from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing import update as update_lib
 from signerf_jax.editing.config import as_json
 from signerf_jax.editing.project import directory_fingerprint, load_arrays
 from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.reference import cameras_from_json
 from signerf_jax.nerf import render
+
+REFERENCE_VIEWS = "reference_views"
 
 
 def update_settings(context: EditContext, iteration: int) -> dict[str, Any]:
@@ -51,6 +58,10 @@ def _view_loader(context: EditContext, iteration: int):
 def update_image_set(context: EditContext, iteration: int = 1) -> str:
   sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration),
                       ("rgb", "control"))
+  if context.settings.update.propagation == REFERENCE_VIEWS:
+    return (f"no view updated (UpdateConfig.propagation = {REFERENCE_VIEWS!r}): the NeRF learns "
+            f"the {context.layout.num_tiles} tiles of sheet {sheet['recipe']} at the reference "
+            "cameras alone")
   visible = context.visible_views()
   directory = context.directory.path("update", iteration=iteration)
   generator, propagation = context.generator(iteration), context.settings.update.propagation
@@ -78,6 +89,42 @@ def edited_images(context: EditContext, iteration: int, indices: np.ndarray) -> 
                                                   np.float32)
 
 
+@dataclasses.dataclass(frozen=True)
+class EditedViews:
+  """The views the NeRF update learns the edit from: the training views that show the selection,
+  as the update stage left them, or (`UpdateConfig.propagation = 'reference_views'`) the
+  reference views with the sheet's tiles.
+
+  Attributes:
+    cameras: K cameras.
+    originals: [K, H, W, 3] float32 in [0, 1], the views before the edit.
+    edited: [K, H, W, 3] float32 in [0, 1], after it.
+    conditioning: their masks and control (`conditioning.Conditioning` of K cameras).
+  """
+
+  cameras: camera_lib.Cameras
+  originals: np.ndarray
+  edited: np.ndarray
+  conditioning: conditioning_lib.Conditioning
+
+
+def edited_views(context: EditContext, iteration: int) -> EditedViews:
+  if context.settings.update.propagation == REFERENCE_VIEWS:
+    reference = conditioning_lib.Conditioning(**load_arrays(
+        context.directory.path("reference", "inputs.npz", iteration=iteration),
+        [field.name for field in dataclasses.fields(conditioning_lib.Conditioning)]))
+    cameras = cameras_from_json(files.read_json(
+        context.directory.path("reference", "cameras.json", iteration=iteration)))
+    sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration),
+                        ("rgb",))
+    tiles, _ = sheet_lib.disassemble(sheet["rgb"], context.layout)
+    return EditedViews(cameras, reference.render, np.asarray(tiles, np.float32), reference)
+  visible = context.visible_views()
+  return EditedViews(context.dataset.cameras.take(visible), context.dataset.images[visible],
+                     edited_images(context, iteration, visible),
+                     context.conditioning_of_views().take(visible))
+
+
 def _provenance(context: EditContext, iteration: int) -> dict[str, Any]:
   settings, config = context.settings, context.settings.edit
   return {
@@ -99,11 +146,19 @@ def _provenance(context: EditContext, iteration: int) -> dict[str, Any]:
 
 def write_dataset(context: EditContext, iteration: int = 1) -> str:
   dataset = context.dataset
-  conditioned = context.conditioning_of_views()
-  images = dataset.images.copy()
-  visible = context.visible_views()
-  images[visible] = edited_images(context, iteration, visible)
   directory = context.directory.path("dataset", iteration=iteration)
+  if context.settings.update.propagation == REFERENCE_VIEWS:
+    views = edited_views(context, iteration)
+    dataset = dataclasses.replace(
+        dataset, images=views.originals, cameras=views.cameras, alphas=None, masks=None,
+        depths=None, extras={},
+        image_names=tuple(f"reference_{index}" for index in range(views.cameras.num_cameras)))
+    images, conditioned = views.edited, views.conditioning
+  else:
+    conditioned = context.conditioning_of_views()
+    images = dataset.images.copy()
+    visible = context.visible_views()
+    images[visible] = edited_images(context, iteration, visible)
   transforms = edited_dataset.write_edited_dataset(
       directory, dataset, images, conditioned.mask, conditioned.control,
       conditioned.control_depth, _provenance(context, iteration))
