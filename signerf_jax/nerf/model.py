@@ -231,14 +231,26 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
   return outputs, aux
 
 
+def _region_interval(model: NerfModel, rays: Rays, t_near, t_far):
+  """[R] (t_in, t_out, crossing): each ray's stretch inside the edit region within its modelled
+  range [t_near, t_far], and whether it is not empty."""
+  t_in, t_out, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.edit_region)
+  t_in = jnp.clip(t_in, t_near, t_far)
+  t_out = jnp.clip(t_out, t_in, t_far)
+  return t_in, t_out, hit & (t_out > t_in)
+
+
+def crosses_region(model: NerfModel, rays: Rays):
+  """[R] bool: the rays whose modelled range crosses the edit region (the only rays an edit
+  region's field changes)."""
+  return _region_interval(model, rays, *_ray_range(model.original, rays))[2]
+
+
 def _region_stretch(model: NerfModel, rays: Rays, t_near, t_far, empty_at):
   """[R] (t_in, t_out): each ray's stretch inside the edit region, within [t_near, t_far]; rays
   that miss it get the empty stretch at `empty_at` [R], where it splits no interval of the
   original's (ending its samples there), so they render exactly as the original does."""
-  t_in, t_out, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.edit_region)
-  t_in = jnp.clip(t_in, t_near, t_far)
-  t_out = jnp.clip(t_out, t_in, t_far)
-  crossing = hit & (t_out > t_in)
+  t_in, t_out, crossing = _region_interval(model, rays, t_near, t_far)
   return tuple(jnp.where(crossing, t, empty_at) for t in (t_in, t_out))
 
 

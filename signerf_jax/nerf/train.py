@@ -143,43 +143,59 @@ class TrainingData:
                jax.tree.map(jnp.asarray, dataset.cameras), jnp.asarray(weights), alphas)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 3))
-def _region_chunk(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
-                  image_shape: tuple[int, int, int], flat_pixels):
-  """Surroundings of the rays through `flat_pixels` [C] and whether each crosses the region."""
+def _pixel_rays(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
+                image_shape: tuple[int, int, int], flat_pixels) -> camera.Rays:
+  """The rays through `flat_pixels` [C] (indices into [N, H, W]) as the original NeRF saw them
+  (its pose corrections applied)."""
   index, row, column = jnp.unravel_index(flat_pixels, image_shape)
   rays = camera.pixel_rays(cameras, index, column + 0.5, row + 0.5)
-  original = variables["original"]
   if model.capacity.pose_refinement:
-    rays = camera.refine_rays(rays, original["params"][nerf_model.POSE_ADJUSTMENTS])
-  surroundings = nerf_model.region_surroundings(model, variables, rays)
-  return surroundings, surroundings.t_out > surroundings.t_in
+    rays = camera.refine_rays(rays, variables["original"]["params"][nerf_model.POSE_ADJUSTMENTS])
+  return rays
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3))
+def _crossing_chunk(model, variables, cameras, image_shape, flat_pixels):
+  return nerf_model.crosses_region(
+      model, _pixel_rays(model, variables, cameras, image_shape, flat_pixels))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3))
+def _surroundings_chunk(model, variables, cameras, image_shape, flat_pixels):
+  return nerf_model.region_surroundings(
+      model, variables, _pixel_rays(model, variables, cameras, image_shape, flat_pixels))
+
+
+def _in_chunks(function, flat_pixels: np.ndarray, chunk_size: int):
+  """`function(chunk)` over fixed-size chunks of `flat_pixels` [P] (the last one padded, so one
+  compilation serves all), concatenated into numpy arrays [P, ...]."""
+  outputs = []
+  for start in range(0, len(flat_pixels), chunk_size):
+    chunk = flat_pixels[start:start + chunk_size]
+    result = function(np.pad(chunk, (0, chunk_size - len(chunk)), mode="edge"))
+    outputs.append(jax.tree.map(lambda array: np.asarray(array)[:len(chunk)], result))
+  return jax.tree.map(lambda *arrays: np.concatenate(arrays), *outputs)
 
 
 def with_region_rays(data: TrainingData, model: nerf_model.NerfModel, variables,
                      chunk_size: int = 8192) -> TrainingData:
   """`data` with its `RegionRays` when `model` has an edit region (`variables` hold the
-  original's): every pixel of non-zero weight whose ray crosses the region."""
+  original's): every pixel of non-zero weight whose ray crosses the region, with the original's
+  render around the region (the only rays rendered: a box test finds them first)."""
   if model.edit_region is None or data.region is not None:
     return data
   image_shape = tuple(data.pixel_weights.shape)
-  candidates = np.flatnonzero(np.asarray(data.pixel_weights).reshape(-1) > 0).astype(np.int32)
-  kept_pixels, kept_surroundings = [], []
-  for start in range(0, len(candidates), chunk_size):
-    chunk = candidates[start:start + chunk_size]
-    padded = np.pad(chunk, (0, chunk_size - len(chunk)), mode="edge")
-    surroundings, crossing = _region_chunk(model, variables, data.cameras, image_shape, padded)
-    crossing = np.asarray(crossing)[:len(chunk)]
-    kept_pixels.append(chunk[crossing])
-    kept_surroundings.append(jax.tree.map(lambda array: np.asarray(array)[:len(chunk)][crossing],
-                                          surroundings))
-  pixels = np.concatenate(kept_pixels) if kept_pixels else np.zeros(0, np.int32)
+  weighted = np.flatnonzero(np.asarray(data.pixel_weights).reshape(-1) > 0).astype(np.int32)
+  inputs = (model, variables, data.cameras, image_shape)
+  crossing = (_in_chunks(functools.partial(_crossing_chunk, *inputs), weighted, 16 * chunk_size)
+              if len(weighted) else np.zeros(0, bool))
+  pixels = weighted[crossing]
   if not len(pixels):
     raise InputError(f"no training pixel sees the edit region {model.edit_region}",
                      field="edit_region")
-  surroundings = jax.tree.map(lambda *arrays: jnp.asarray(np.concatenate(arrays)),
-                              *kept_surroundings)
-  return data.replace(region=RegionRays(jnp.asarray(pixels), surroundings))
+  surroundings = _in_chunks(functools.partial(_surroundings_chunk, *inputs), pixels, chunk_size)
+  return data.replace(region=RegionRays(jnp.asarray(pixels), jax.tree.map(jnp.asarray,
+                                                                          surroundings)))
 
 
 def sample_rays(key, data: TrainingData, batch_size: int):
