@@ -161,14 +161,18 @@ class EditContext:
 
   def conditioning_of_views(self) -> conditioning_lib.Conditioning:
     """The training views' conditioning (all views)."""
-    names = [field.name for field in dataclasses.fields(conditioning_lib.Conditioning)]
     return conditioning_lib.Conditioning.stack(
-        [conditioning_lib.Conditioning(**load_arrays(self.view_path(index), names))
-         for index in range(self.dataset.num_images)])
+        [load_conditioning(self.view_path(index)) for index in range(self.dataset.num_images)])
 
   def visible_views(self) -> np.ndarray:
     """[V] int indices of the training views that show the selection."""
     return np.asarray(files.read_json(self.directory.path("views", "views.json"))["visible"])
+
+
+def load_conditioning(path: Path) -> conditioning_lib.Conditioning:
+  """A `Conditioning` saved with `save_arrays(path, **conditioning.arrays())`."""
+  names = [field.name for field in dataclasses.fields(conditioning_lib.Conditioning)]
+  return conditioning_lib.Conditioning(**load_arrays(path, names))
 
 
 def evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:

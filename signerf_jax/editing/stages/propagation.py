@@ -18,7 +18,7 @@ from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing import update as update_lib
 from signerf_jax.editing.config import as_json
 from signerf_jax.editing.project import directory_fingerprint, load_arrays
-from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.context import EditContext, load_conditioning
 from signerf_jax.editing.stages.reference import cameras_from_json
 from signerf_jax.nerf import render
 
@@ -109,10 +109,10 @@ class EditedViews:
 
 
 def edited_views(context: EditContext, iteration: int) -> EditedViews:
+  """The `EditedViews` of an iteration (its update and sheet stages done)."""
   if context.settings.update.propagation == REFERENCE_VIEWS:
-    reference = conditioning_lib.Conditioning(**load_arrays(
-        context.directory.path("reference", "inputs.npz", iteration=iteration),
-        [field.name for field in dataclasses.fields(conditioning_lib.Conditioning)]))
+    reference = load_conditioning(
+        context.directory.path("reference", "inputs.npz", iteration=iteration))
     cameras = cameras_from_json(files.read_json(
         context.directory.path("reference", "cameras.json", iteration=iteration)))
     sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration),
