@@ -6,12 +6,12 @@ forward of our jitted model and of diffusers (torch, `threads` threads), their r
 `jax_over_torch`, compile time, FLOPs (counted by torch's FlopCounterMode on the reference
 forward) and achieved GFLOP/s against the CPU's fp32 peak as this run measures it (the best
 GFLOP/s of large jitted fp32 matmuls, before and after the models, same threads), XLA's memory
-plan, the largest output
-difference from torch (both run the same random weights, converted through our loader's name and
-layout mapping), and the bf16-compute option's speed and error. JAX and torch runs alternate and
-medians are reported, so a busy machine slows both alike; process CPU seconds per forward are
-recorded too. With `benchmark.threads = 1` both run single-threaded, whose CPU time is the
-measure least disturbed by other jobs on a shared machine.
+plan, the largest output difference from torch (both run the same random weights, converted
+through our loader's name and layout mapping), and the bf16-compute option's speed and error.
+JAX and torch runs alternate and medians are reported, so a busy machine slows both alike;
+process CPU seconds per forward are recorded too. With `benchmark.threads = 1` both run
+single-threaded, whose CPU time is the measure least disturbed by other jobs on a shared
+machine.
 
     python experiments/bench_diffusion.py [--gin_file bench_diffusion] [--gin_param ...]
 
