@@ -10,7 +10,8 @@ dataset (a fresh field, inside the region when there is one). Fine-tuning starts
 parameters with a fresh optimiser state and occupancy grid (`train.init_state`) and minimises,
 per step,
 
-  L1(render, target) + distortion + interlevel [+ lpips_weight * LPIPS(render, target)],
+  L1(render, target) + distortion + interlevel [+ lpips_weight * LPIPS(render, target)]
+      [+ opacity_entropy_weight * binary entropy of each ray's opacity],
 
 L1 because the edited images disagree a little between views (the NeRF should settle on their
 median, not their mean). LPIPS compares image structure, so with LPIPS weights the step renders

@@ -67,7 +67,7 @@ def test_the_baseline_is_one_edit_whichever_ablation_lists_it(ablations_module, 
              in ablations_module.ablations(ablations_module.AblationConfig()).items()}
   baselines = [by_name["propagation"]["baseline"], by_name["controlnet_scale"]["scale_1"],
                by_name["sheet_layout"]["2x3"], by_name["crops"]["crops"],
-               by_name["nerf_update"]["finetune_region"]]
+               by_name["nerf_update"]["retrain_region"]]
   keys = {edit_key(tmp_path, variant.bindings) for variant in baselines}
   assert len(keys) == 1
   assert edit_key(tmp_path, by_name["crops"]["full_frames"].bindings) not in keys
