@@ -38,6 +38,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
                "update the image set through the chosen sheet; write the edited dataset"),
     "finetune": ("signerf_jax.editing.commands.edit",
                  "fine-tune (or retrain) the NeRF on the edited dataset"),
+    "view": ("signerf_jax.viewer.command",
+             "the trained NeRF, its cameras and the edit's selection in a browser: move the "
+             "selection, preview sheets, save"),
     "demo": ("signerf_jax.editing.demo",
              "insert a cow into a generated scene with the shipped model, end to end"),
 }

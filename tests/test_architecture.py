@@ -1,6 +1,7 @@
 """The library imports one way and reads no gin.
 
-Edges (`is_edge`: the command line, gin's table, every command, the demo, default_model) turn
+Edges (`is_edge`: the command line, gin's table, every command, the demo, the browser viewer,
+default_model) turn
 gin and flags into calls and may import anything; no other module imports an edge. The other
 modules' folders import one way: each only from the folders below it in LAYERS and from the
 top-level modules, which import no folder. Only edges import gin, and no function is gin-bound.
@@ -17,15 +18,18 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "signerf_jax"
 # Lowest first. default_model (the shipped model's training and evaluation) sits beside the
 # experiments, an edge: the library reaches it only through the path of its weights.
-LAYERS = ("data", "metrics", "nerf", "geometry", "clip", "diffusion", "editing", "default_model")
+LAYERS = ("data", "metrics", "nerf", "geometry", "clip", "diffusion", "editing", "viewer",
+          "default_model")
 EDGE_MODULES = ("signerf_jax.cli", "signerf_jax.configs", "signerf_jax.editing.demo")
 
 
 def is_edge(module: str) -> bool:
   """Whether `module` is where gin and the command line meet the library: `cli`, `configs`,
-  the demo, any `commands` module or package (and what it holds), and all of default_model."""
+  the demo, any `commands` module or package (and what it holds), the viewer (the command line
+  of the browser) and all of default_model."""
   parts = module.split(".")
-  return module in EDGE_MODULES or "commands" in parts or parts[1:2] == ["default_model"]
+  return (module in EDGE_MODULES or "commands" in parts
+          or parts[1:2] in (["default_model"], ["viewer"]))
 
 
 def module_name(path: Path) -> str:

@@ -247,8 +247,6 @@ class FinetuneConfig:
     lpips_weights: a safetensors file of VGG-LPIPS weights (`metrics.lpips`); "" = no LPIPS.
     lpips_weight: the LPIPS term's weight (the paper applies LPIPS when fine-tuning edits).
     patch_size: side of the square patches rendered for LPIPS (at least 16).
-    opacity_entropy_weight: weight of a prior pushing the fine-tuned field's opacity along each
-      ray (inside the edit region) towards 0 or 1 (`nerf.losses.opacity_entropy`).
     edit_region: the updated NeRF is rendered only inside the selection's box (grown by
       `region_margin`), over the frozen original NeRF everywhere else (`nerf.model`'s edit
       regions): nothing outside the box can change, however the edited views disagree. False
@@ -260,7 +258,6 @@ class FinetuneConfig:
   lpips_weights: str = ""
   lpips_weight: NonNegativeFloat = 0.1
   patch_size: Annotated[int, Range(16)] = 32
-  opacity_entropy_weight: NonNegativeFloat = 0.0
   edit_region: bool = True
   region_margin: NonNegativeFloat = 0.25
 

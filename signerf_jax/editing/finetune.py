@@ -11,7 +11,7 @@ parameters with a fresh optimiser state and occupancy grid (`train.init_state`) 
 per step,
 
   L1(render, target) + distortion + interlevel [+ lpips_weight * LPIPS(render, target)]
-      [+ opacity_entropy_weight * binary entropy of each ray's opacity],
+      [+ TrainConfig.opacity_entropy_weight * binary entropy of each ray's opacity],
 
 L1 because the edited images disagree a little between views (the NeRF should settle on their
 median, not their mean). LPIPS compares image structure, so with LPIPS weights the step renders
@@ -55,13 +55,10 @@ class FinetuneLosses:
   Attributes:
     lpips_weight: weight of the LPIPS term; 0 disables it (and patch rendering).
     patch_size: side of the rendered patches when LPIPS is on.
-    opacity_entropy_weight: weight of `losses.opacity_entropy` of the trained field's opacity
-      (inside the edit region for an edit).
   """
 
   lpips_weight: float = 0.0
   patch_size: int = 32
-  opacity_entropy_weight: float = 0.0
 
   @property
   def uses_lpips(self) -> bool:
@@ -120,13 +117,10 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
           aux["edges"], aux["weights"], aux["proposals"], ray_weights)
-    statistics = {}
-    if loss_settings.opacity_entropy_weight > 0:
-      statistics["opacity_entropy"] = losses.opacity_entropy(aux["weights"], ray_weights)
-      loss = loss + loss_settings.opacity_entropy_weight * statistics["opacity_entropy"]
-    statistics |= {"l1": l1, "mse": losses.weighted_mse(outputs["rgb"], target, ray_weights),
+    statistics = {"l1": l1, "mse": losses.weighted_mse(outputs["rgb"], target, ray_weights),
                    "samples": aux["samples_evaluated"],
                    "complete_fraction": jnp.mean(outputs["ray_complete"])}
+    loss = train.add_opacity_entropy(config, loss, aux["weights"], ray_weights, statistics)
     if loss_settings.uses_lpips:
       patches = (-1, loss_settings.patch_size, loss_settings.patch_size, 3)
       rendered = jnp.where(ray_weights[:, None] > 0, outputs["rgb"], target)

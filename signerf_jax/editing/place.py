@@ -173,3 +173,79 @@ def placement_figure(dataset: Dataset, view: int, selection: SelectionConfig,
     image[row, max(column - arm, 0):column + arm + 1] = [1.0, 1.0, 0.0]
     image[max(row - arm, 0):row + arm + 1, column] = [1.0, 1.0, 0.0]
   return image
+
+
+def _scene_from_frame(selection: SelectionConfig, dataset: Dataset) -> np.ndarray:
+  """[4, 4] the similarity from the selection's frame into the scene frame."""
+  if selection.frame == "source":
+    return np.asarray(dataset.world_from_source, np.float64)
+  return np.eye(4)
+
+
+def handle_pose(selection: SelectionConfig, dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+  """Where an interactive handle (the viewer's gizmo) of the selection sits, in the scene frame:
+  (rotation [3, 3], position [3]). A box's handle is its centre, axis-aligned; a proxy's is its
+  ground point, turned as the proxy is (`geometry.mesh.upright_rotation`: the proxy's own up
+  along the handle's `mesh_up`). `moved_selection` inverts it."""
+  scene_from_frame = _scene_from_frame(selection, dataset)
+  if selection.kind == "box":
+    centre = (np.asarray(selection.box_min, np.float64) + np.asarray(selection.box_max)) / 2
+    return np.eye(3), poses_lib.transform_points(scene_from_frame, centre)
+  if selection.ground_position is None:
+    raise InputError("a proxy placed by scale, rotation and translation has no ground point to "
+                     "move: place it with --on_ground (or `signerf place`)",
+                     field="ground_position")
+  rotation = scene_from_frame[:3, :3] / poses_lib.similarity_scale(scene_from_frame)
+  own = mesh_lib.upright_rotation(select_lib.up_direction(selection, dataset), selection.mesh_up,
+                                  selection.heading_degrees)
+  return rotation @ own, poses_lib.transform_points(scene_from_frame, selection.ground_position)
+
+
+def moved_selection(selection: SelectionConfig, dataset: Dataset, rotation, position
+                    ) -> SelectionConfig:
+  """The selection whose handle (`handle_pose`) is at `position` [3] turned by `rotation`
+  [3, 3], both in the scene frame, in the selection's own frame (a box only moves: it stays
+  axis-aligned in its frame)."""
+  frame_from_scene = np.linalg.inv(_scene_from_frame(selection, dataset))
+  centre = poses_lib.transform_points(frame_from_scene, np.asarray(position, np.float64))
+  rounded = lambda values: tuple(round(float(value), 6) for value in values)
+  if selection.kind == "box":
+    half = (np.asarray(selection.box_max, np.float64) - np.asarray(selection.box_min)) / 2
+    return dataclasses.replace(selection, box_min=rounded(centre - half),
+                               box_max=rounded(centre + half))
+  turn = frame_from_scene[:3, :3] / poses_lib.similarity_scale(frame_from_scene)
+  up, heading = mesh_lib.heading_degrees_of(turn @ np.asarray(rotation, np.float64),
+                                            selection.mesh_up)
+  return dataclasses.replace(selection, ground_position=rounded(centre), up=rounded(up),
+                             heading_degrees=round(heading, 4))
+
+
+def stand_on_surface(model, variables, dataset: Dataset, selection: SelectionConfig
+                     ) -> SelectionConfig:
+  """The proxy stood on the NeRF's surface under its ground point (`locate`, as `signerf
+  place` does), seen from the training view that looks at that point most steeply along the
+  proxy's down direction (its ray falls onto the support, not past it); its size, heading and
+  own up are kept.
+
+  Raises:
+    InputError: no training view sees the ground point, or the NeRF shows no surface there.
+  """
+  rotation, point = handle_pose(selection, dataset)
+  pixels, depth = (np.asarray(value) for value in camera_lib.project(dataset.cameras, point))
+  cameras = dataset.cameras
+  inside = ((depth > 0) & (pixels[:, 0] >= 0) & (pixels[:, 0] < cameras.width)
+            & (pixels[:, 1] >= 0) & (pixels[:, 1] < cameras.height))
+  if not inside.any():
+    raise InputError("no training view sees the proxy's ground point", field="ground_position")
+  down = -(rotation @ np.asarray(selection.mesh_up, np.float64))
+  down /= np.linalg.norm(down)
+  sight = point - np.asarray(cameras.positions, np.float64)
+  steepness = (sight @ down) / np.linalg.norm(sight, axis=1)
+  view = int(np.argmax(np.where(inside, steepness, -np.inf)))
+  size = selection.ground_size
+  if selection.frame == "scene":
+    size /= poses_lib.similarity_scale(dataset.world_from_source)
+  found = locate(model, variables, dataset, view, tuple(map(float, pixels[view])), size=size)
+  placed = found.selection(selection.proxy, selection.heading_degrees, selection.mesh_up)
+  return dataclasses.replace(placed, **{name: getattr(selection, name) for name in (
+      "dilation_radius", "feather_radius", "min_accumulation", "min_mask_pixels")})

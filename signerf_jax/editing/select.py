@@ -95,7 +95,7 @@ def load_proxy(name: str) -> mesh_lib.Mesh:
     raise InputError(error.problem, error.path, "proxy") from None
 
 
-def _up(config: SelectionConfig, dataset: Dataset) -> np.ndarray:
+def up_direction(config: SelectionConfig, dataset: Dataset) -> np.ndarray:
   """The up direction in the configured frame: `config.up`, or the cameras' mean up."""
   if config.up is not None:
     return np.asarray(config.up, np.float64)
@@ -112,7 +112,7 @@ def place_proxy(config: SelectionConfig, dataset: Dataset) -> mesh_lib.Mesh:
     if not config.ground_size > 0:
       raise InputError(f"must be positive, got {config.ground_size}", field="ground_size")
     placed = mesh_lib.place_on_ground(proxy, config.ground_position, config.ground_size,
-                                      up=_up(config, dataset),
+                                      up=up_direction(config, dataset),
                                       mesh_up=config.mesh_up,
                                       heading_degrees=config.heading_degrees)
   else:

@@ -162,10 +162,7 @@ def place_on_ground(mesh: Mesh, position, size: float, up=(0.0, 0.0, 1.0),
     The transformed mesh.
   """
   up = _unit(up, "up")
-  mesh_up = _unit(mesh_up, "mesh_up")
-  upright = _rotation_between(mesh_up, up)
-  heading = trimesh.transformations.rotation_matrix(np.deg2rad(heading_degrees), up)[:3, :3]
-  rotation = heading @ upright
+  rotation = upright_rotation(up, mesh_up, heading_degrees)
   extent = float(np.max(mesh.bounds[1] - mesh.bounds[0]))
   if not extent > 0:
     raise InputError("mesh has zero extent and cannot be scaled", mesh.source or None, "vertices")
@@ -175,6 +172,26 @@ def place_on_ground(mesh: Mesh, position, size: float, up=(0.0, 0.0, 1.0),
   lowest = float(np.min(rotated.vertices.astype(np.float64) @ up))
   footprint = centre - (np.dot(centre, up) - lowest) * up
   return transform_mesh(rotated, similarity_transform(1.0, None, np.asarray(position) - footprint))
+
+
+def upright_rotation(up, mesh_up=(0.0, 1.0, 0.0), heading_degrees: float = 0.0) -> np.ndarray:
+  """The [3, 3] rotation `place_on_ground` turns a mesh by: its `mesh_up` onto `up` (the
+  shortest arc), then `heading_degrees` about `up`."""
+  up = _unit(up, "up")
+  heading = trimesh.transformations.rotation_matrix(np.deg2rad(heading_degrees), up)[:3, :3]
+  return heading @ _rotation_between(_unit(mesh_up, "mesh_up"), up)
+
+
+def heading_degrees_of(rotation, mesh_up=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, float]:
+  """The inverse of `upright_rotation`: (up [3], heading in degrees) of a [3, 3] rotation."""
+  rotation = np.asarray(rotation, np.float64)
+  up = rotation @ _unit(mesh_up, "mesh_up")
+  turn = rotation @ upright_rotation(up, mesh_up).T  # A rotation about `up`.
+  across = np.cross(up, np.eye(3)[np.argmin(np.abs(up))])
+  across /= np.linalg.norm(across)
+  turned = turn @ across
+  return up, float(np.degrees(np.arctan2(np.dot(up, np.cross(across, turned)),
+                                         np.dot(across, turned))))
 
 
 def _unit(vector, field: str) -> np.ndarray:

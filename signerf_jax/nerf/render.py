@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import os
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import jax
@@ -22,17 +23,16 @@ IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "ne
 NO_BOX = np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]], np.float32)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 4))
-def _render_chunk(model: nerf_model.NerfModel, variables, rays: camera.Rays, start, chunk_size,
-                  near_distance, selection_box):
-  """Renders rays[start:start + chunk_size] (a traced start: one compilation for all chunks).
+@functools.partial(jax.jit, static_argnums=(0,))
+def _render_chunk(model: nerf_model.NerfModel, variables, chunk: camera.Rays, near_distance,
+                  selection_box):
+  """Renders one chunk of rays [C] (one compilation per chunk size, whatever the image size).
 
   "near_weight" is the render weight of the samples nearer to the camera than `near_distance`
   (scene units, traced): what near-camera floaters contribute. "selection_weight" is the weight
   of the samples whose centres lie inside `selection_box` ([2, 3] low and high corners, scene
   units, traced): the opacity of what the NeRF holds there, as this camera sees it.
   """
-  chunk = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, chunk_size), rays)
   outputs, _ = nerf_model.render_rays(model, variables, chunk, jax.random.PRNGKey(0),
                                       training=False)
   edges, weights = outputs["edges"], outputs["weights"]
@@ -45,7 +45,26 @@ def _render_chunk(model: nerf_model.NerfModel, variables, rays: camera.Rays, sta
 
 
 # Jitted so that repeated calls reuse one compilation (eagerly, undistortion's loop recompiles).
-_image_rays = jax.jit(camera.image_rays)
+image_rays = jax.jit(camera.image_rays)
+
+
+def render_chunks(model: nerf_model.NerfModel, variables, rays: camera.Rays,
+                  chunk_size: int = 4096, near_distance: float = 0.0, selection_box=None
+                  ) -> Iterator[dict[str, np.ndarray]]:
+  """Renders flat rays [R] chunk by chunk, yielding each chunk's outputs as numpy arrays [C]
+  (the last chunk padded by repeating the last ray, and cut back): a caller that stops
+  iterating stops the work, as the viewer does when its camera moves. See
+  `render_rays_chunked` for the arguments and outputs."""
+  count = rays.shape[0]
+  rays = jax.device_get(rays)  # Sliced on the host: no compilation per chunk position.
+  near_distance = jnp.float32(near_distance)
+  box = jnp.asarray(NO_BOX if selection_box is None else selection_box, jnp.float32)
+  for start in range(0, count, chunk_size):
+    stop = min(start + chunk_size, count)
+    chunk = jax.tree.map(lambda a: np.concatenate(  # pylint: disable=cell-var-from-loop
+        [a[start:stop], np.repeat(a[stop - 1:stop], start + chunk_size - stop, 0)]), rays)
+    outputs = jax.device_get(_render_chunk(model, variables, chunk, near_distance, box))
+    yield {name: value[:stop - start] for name, value in outputs.items()}
 
 
 def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Rays,
@@ -63,19 +82,16 @@ def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Ray
     numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance, near_weight,
     selection_weight [...].
   """
-  shape = rays.shape
-  flat = rays.reshape(-1)
-  count = flat.shape[0]
-  padded = int(np.ceil(count / chunk_size)) * chunk_size
-  flat = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - count, 0)]),
-                      flat)
-  near_distance = jnp.float32(near_distance)
-  box = jnp.asarray(NO_BOX if selection_box is None else selection_box, jnp.float32)
-  pieces = [jax.device_get(_render_chunk(model, variables, flat, start, chunk_size,
-                                         near_distance, box))
-            for start in range(0, padded, chunk_size)]
-  return {name: np.concatenate([piece[name] for piece in pieces])[:count].reshape(
-      shape + pieces[0][name].shape[1:]) for name in IMAGE_OUTPUTS}
+  return assemble(render_chunks(model, variables, rays.reshape(-1), chunk_size, near_distance,
+                                selection_box), rays.shape)
+
+
+def assemble(pieces, shape: tuple[int, ...]) -> dict[str, np.ndarray]:
+  """The outputs of `render_chunks`' chunks (an iterable of dicts of [C, ...] arrays) as arrays
+  of the rays' `shape` [...]."""
+  pieces = list(pieces)
+  return {name: np.concatenate([piece[name] for piece in pieces]).reshape(
+      shape + pieces[0][name].shape[1:]) for name in pieces[0]}
 
 
 def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
@@ -89,7 +105,7 @@ def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Camer
     near_weight [N, H, W], the weight nearer than `near_distance` to the camera;
     selection_weight [N, H, W], the weight inside `selection_box` (see `render_rays_chunked`).
   """
-  frames = [render_rays_chunked(model, variables, _image_rays(cameras, index), chunk_size,
+  frames = [render_rays_chunked(model, variables, image_rays(cameras, index), chunk_size,
                                 near_distance, selection_box)
             for index in range(cameras.num_cameras)]
   return {name: np.stack([frame[name] for frame in frames]) for name in IMAGE_OUTPUTS}

@@ -61,6 +61,9 @@ class TrainConfig:
       no gradient to become dense where the scene needs it.
     interlevel_loss_weight: weight of the proposal loss.
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss (crisper surfaces).
+    opacity_entropy_weight: weight of a prior pushing each ray's opacity towards 0 or 1
+      (`losses.opacity_entropy`; for a model with an edit region, the opacity of the trained
+      field inside the region): against the haze a field fitted to views that disagree becomes.
     checkpoint_every_steps, checkpoint_every_seconds: checkpoint when either is reached.
     seed: PRNG seed of the run.
   """
@@ -77,6 +80,7 @@ class TrainConfig:
   occupancy_warmup_steps: NonNegativeInt = 32
   interlevel_loss_weight: NonNegativeFloat = 1.0
   distortion_loss_weight: NonNegativeFloat = 0.002
+  opacity_entropy_weight: NonNegativeFloat = 0.0
   checkpoint_every_steps: PositiveInt = 1000
   checkpoint_every_seconds: PositiveFloat = 120.0
   seed: NonNegativeInt = 0
@@ -323,8 +327,10 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
           aux["edges"], aux["weights"], aux["proposals"], ray_weights)
-    statistics = {"loss": loss, "mse": mse, "samples": aux["samples_evaluated"],
+    statistics = {"mse": mse, "samples": aux["samples_evaluated"],
                   "complete_fraction": jnp.mean(outputs["ray_complete"])}
+    loss = add_opacity_entropy(config, loss, aux["weights"], ray_weights, statistics)
+    statistics["loss"] = loss
     return loss, statistics
 
   gradients, statistics = jax.grad(loss_fn, has_aux=True)(state.variables["params"])
@@ -332,6 +338,15 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
   statistics["learning_rate"] = learning_rate(config, state.step, progress)
   statistics["psnr"] = -10.0 * jnp.log10(jnp.maximum(statistics.pop("mse"), 1e-10))
   return TrainState(state.step + 1, variables, optimizer_state, state.key), statistics
+
+
+def add_opacity_entropy(config: TrainConfig, loss, weights, ray_weights, statistics):
+  """loss + the opacity prior (`TrainConfig.opacity_entropy_weight`), recorded in statistics
+  when it is on. weights: [R, N] compositing weights; ray_weights: [R]."""
+  if config.opacity_entropy_weight == 0:
+    return loss
+  statistics["opacity_entropy"] = losses.opacity_entropy(weights, ray_weights)
+  return loss + config.opacity_entropy_weight * statistics["opacity_entropy"]
 
 
 def occupancy_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainState

@@ -8,6 +8,7 @@ from signerf_jax import camera
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.editing import place, select
 from signerf_jax.editing.commands.place import view_index
+from signerf_jax.editing.config import SelectionConfig
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import placement
 
@@ -135,3 +136,59 @@ def test_a_box_from_two_rectangles_is_given_in_the_datasets_units():
   assert np.all(np.asarray(selection.box_max) >= source_cube.max(0) - 1e-5)
   figure = place.placement_figure(dataset, 0, selection)
   assert ((figure[..., 0] > 0.7) & (figure[..., 1] < 0.45)).sum() > 20
+
+
+def moved_handle(selection, dataset, turn_degrees=0.0, shift=(0.0, 0.0, 0.0)):
+  """The selection after its handle is shifted (scene frame) and turned about the scene's z."""
+  rotation, position = place.handle_pose(selection, dataset)
+  angle = np.deg2rad(turn_degrees)
+  turn = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                   [0, 0, 1]])
+  return place.moved_selection(selection, dataset, turn @ rotation,
+                               position + np.asarray(shift))
+
+
+PROXY = SelectionConfig(kind="proxy", proxy="primitive:cow", ground_position=(0.2, 0.1, 0.0),
+                        up=(0.0, 0.0, 1.0), ground_size=0.6, heading_degrees=10.0)
+BOX = SelectionConfig(kind="box", box_min=(-0.2, -0.1, 0.0), box_max=(0.3, 0.2, 0.4))
+
+
+@pytest.mark.parametrize("selection", [PROXY, BOX], ids=["proxy", "box"])
+def test_a_handle_left_where_it_is_leaves_the_selection_as_it_is(selection):
+  assert moved_handle(selection, ground_dataset()) == selection
+
+
+@pytest.mark.parametrize("selection", [PROXY, BOX], ids=["proxy", "box"])
+def test_moving_the_handle_moves_the_selection_by_as_much_in_the_scene(selection):
+  dataset = ground_dataset()
+  moved = moved_handle(selection, dataset, shift=(0.05, -0.1, 0.02))
+  before, after = (np.asarray(place.selection_mesh(chosen, dataset).vertices, np.float64)
+                   for chosen in (selection, moved))
+  np.testing.assert_allclose(after - before, np.broadcast_to([0.05, -0.1, 0.02], before.shape),
+                             atol=1e-5)
+  # In the dataset's units: the scene is the source at half scale, turned a quarter about z.
+  if selection.kind == "proxy":
+    np.testing.assert_allclose(np.subtract(moved.ground_position, selection.ground_position),
+                               [-0.2, -0.1, 0.04], atol=1e-5)
+
+
+def test_turning_a_proxys_handle_about_up_turns_its_heading():
+  dataset = ground_dataset()
+  turned = moved_handle(PROXY, dataset, turn_degrees=30.0)
+  assert turned.heading_degrees == pytest.approx(40.0, abs=1e-3)
+  np.testing.assert_allclose(turned.up, PROXY.up, atol=1e-6)
+  assert turned.ground_position == PROXY.ground_position
+  # The handle sits where the proxy now stands, turned as it is.
+  rotation, position = place.handle_pose(turned, dataset)
+  expected_rotation, _ = place.handle_pose(PROXY, dataset)
+  angle = np.deg2rad(30.0)
+  turn = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                   [0, 0, 1]])
+  np.testing.assert_allclose(rotation, turn @ expected_rotation, atol=1e-6)
+
+
+def test_a_proxy_placed_by_a_similarity_has_no_handle():
+  selection = SelectionConfig(kind="proxy", proxy="primitive:cow")
+  with pytest.raises(InputError, match="no ground point") as error:
+    place.handle_pose(selection, ground_dataset())
+  assert error.value.field == "ground_position"

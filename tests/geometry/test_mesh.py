@@ -115,3 +115,22 @@ def test_shared_spot_meshes_load_and_the_primitive_cow_matches_their_size(shared
   spot = mesh_lib.load_mesh(shared_data / "meshes/spot/spot_triangulated.obj")
   assert spot.faces.shape == (5856, 3)
   np.testing.assert_allclose(primitives.primitive_cow().bounds, spot.bounds, atol=0.15)
+
+
+@pytest.mark.parametrize("up", [(0, 0, 1), (0, 1, 0), (0, -1, 0), (1, 2, -0.5)])
+@pytest.mark.parametrize("heading", [0.0, 37.0, -120.0, 179.0])
+def test_the_heading_of_an_upright_rotation_is_recovered(up, heading):
+  rotation = mesh_lib.upright_rotation(up, (0.0, 1.0, 0.0), heading)
+  np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+  found_up, found_heading = mesh_lib.heading_degrees_of(rotation, (0.0, 1.0, 0.0))
+  np.testing.assert_allclose(found_up, np.asarray(up) / np.linalg.norm(up), atol=1e-9)
+  assert found_heading == pytest.approx(heading, abs=1e-6)
+  np.testing.assert_allclose(mesh_lib.upright_rotation(found_up, (0.0, 1.0, 0.0), found_heading),
+                             rotation, atol=1e-9)
+
+
+def test_any_rotation_is_an_upright_rotation_with_some_up_and_heading():
+  rotation = trimesh.transformations.random_rotation_matrix(np.random.default_rng(0).random(3))
+  up, heading = mesh_lib.heading_degrees_of(rotation[:3, :3], (0.0, 0.0, 1.0))
+  np.testing.assert_allclose(mesh_lib.upright_rotation(up, (0.0, 0.0, 1.0), heading),
+                             rotation[:3, :3], atol=1e-9)

@@ -242,12 +242,12 @@ def test_fine_tuning_an_edit_region_learns_it_with_or_without_the_opacity_prior(
   region_model = dataclasses.replace(model, edit_region=REGION)
   red = dataclasses.replace(sphere, images=np.where(sphere.depths[..., None] > 0, RED,
                                                     sphere.images))
-  loss_settings = finetune.FinetuneLosses(opacity_entropy_weight=entropy_weight)
   trainer = finetune.finetune(red, tmp_path, model=region_model,
                               init_variables={"params": original_variables["params"],
                                               "original": original_variables},
-                              config=dataclasses.replace(SMALL_CONFIG, steps=40),
-                              loss_settings=loss_settings, edited_bounds=REGION,
+                              config=dataclasses.replace(SMALL_CONFIG, steps=40,
+                                                         opacity_entropy_weight=entropy_weight),
+                              loss_settings=finetune.FinetuneLosses(), edited_bounds=REGION,
                               progress=False)
   statistics = trainer.last_statistics
   assert np.isfinite(statistics["loss"])

@@ -172,3 +172,15 @@ def test_selection_weight_is_the_opacity_inside_the_box(sphere, trained):
   assert 0.05 < half.sum() / everything["accumulation"].sum() < 0.95
   misses = sphere.depths[2] == 0
   assert np.mean(half[0][misses]) < 0.1
+
+
+def test_the_opacity_prior_is_part_of_the_training_loss_when_weighted(sphere):
+  model = small_model(sphere)
+  config = dataclasses.replace(SMALL_CONFIG, opacity_entropy_weight=0.5)
+  state = train.init_state(model, config)
+  _, statistics = train.train_step(model, config, state, train.TrainingData.from_dataset(sphere),
+                                   np.float32(0.5))
+  entropy = float(statistics["opacity_entropy"])
+  assert 0 < entropy <= np.log(2) + 1e-6
+  mse = 10 ** (-float(statistics["psnr"]) / 10)
+  assert float(statistics["loss"]) >= mse + 0.5 * entropy - 1e-6

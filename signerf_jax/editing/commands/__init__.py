@@ -22,6 +22,7 @@ import sys
 import time
 import typing
 from pathlib import Path
+from typing import Callable
 
 import gin
 
@@ -197,18 +198,18 @@ def edit_settings() -> EditSettings:
       nerf_consistency=configs.build(NerfConsistencySettings), gin_config=gin.config_str())
 
 
-def run_command(name: str, directory: str | Path, redo=(), progress: bool = True
-                ) -> stages.EditContext:
+def run_command(name: str, directory: str | Path, redo=(), progress: bool = True,
+                log: Callable[[str], None] | None = None) -> stages.EditContext:
   """Runs the pipeline up to the command's stage with the current gin bindings (saved as
-  `directory`/config.gin first, which later commands read back). Each stage's progress lines,
-  prefixed `signerf NAME`, go to stderr as the progress bars do: stdout holds only the
-  command's result (for `signerf eval --edit`, one JSON line)."""
+  `directory`/config.gin first, which later commands read back). Each stage's progress lines go
+  to `log`; by default, prefixed `signerf NAME`, to stderr as the progress bars do: stdout holds
+  only the command's result (for `signerf eval --edit`, one JSON line)."""
   settings = edit_settings()
   configs.save_gin_config(directory)
+  if log is None:
+    log = lambda line: print(f"signerf {name} {line}", file=sys.stderr, flush=True)
   return stages.run_edit(directory, settings, until=LAST_STAGE[name], redo=tuple(redo),
-                         progress=progress,
-                         log=lambda line: print(f"signerf {name} {line}", file=sys.stderr,
-                                                flush=True))
+                         progress=progress, log=log)
 
 
 def run_stages(name: str, args: argparse.Namespace, extra_bindings=()

@@ -32,6 +32,16 @@ from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.validation import OpenUnitInterval, argument_type
 
 FIGURE_NAME = "placement.png"
+# The fields that say where each kind of selection is.
+PLACEMENT_FIELDS = {"box": ("kind", "frame", "box_min", "box_max"),
+                    "proxy": ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
+                              "heading_degrees", "mesh_up")}
+
+
+def selection_bindings(selection: SelectionConfig) -> list[str]:
+  """The gin bindings that place `selection` (`PLACEMENT_FIELDS`)."""
+  return [f"SelectionConfig.{name} = {gin_value(getattr(selection, name))}"
+          for name in PLACEMENT_FIELDS[selection.kind]]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,7 +113,6 @@ def run(args: argparse.Namespace) -> int:
   if args.rectangle:
     views, rectangles = _rectangles(args.rectangle, dataset.image_names)
     selection, view, pixel = place.box_selection(dataset, views, rectangles), views[0], None
-    names = ("kind", "frame", "box_min", "box_max")
     report = (f"box {selection.box_min} .. {selection.box_max} where the views "
               f"{', '.join(map(str, views))} meet")
   else:
@@ -113,21 +122,19 @@ def run(args: argparse.Namespace) -> int:
     proxy = (args.proxy if args.proxy.startswith(PRIMITIVE_PREFIX)
              else str(Path(args.proxy).resolve()))
     selection, pixel = found.selection(proxy, args.heading, tuple(args.mesh_up)), found.pixel
-    names = ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
-             "heading_degrees", "mesh_up")
     report = (f"view {view} ({dataset.image_names[view]}), pixel ({pixel[0]:g}, {pixel[1]:g}): "
               f"the surface there is {100 * found.plane.inlier_fraction:.0f}% planar around the "
               f"point (residual {found.plane.rms_distance:.2g} scene units)")
   figure = place.placement_figure(dataset, view, selection, pixel)
-  bindings = [f"SelectionConfig.{name} = {gin_value(getattr(selection, name))}"
-              for name in names]
+  bindings = selection_bindings(selection)
   bindings.append(f"EditConfig.original_run = {gin_value(str(Path(args.run).resolve()))}")
   parse_edit_config(args.out, (), bindings)  # On top of the edit's saved settings, if any.
   out = Path(args.out)
   configs.save_gin_config(out)
   files.write_image(out / FIGURE_NAME, figure)
   print(f"signerf place: {report}; {out / FIGURE_NAME} shows it", file=sys.stderr)
-  print(json.dumps({"selection": {name: getattr(selection, name) for name in names},
+  print(json.dumps({"selection": {name: getattr(selection, name)
+                                  for name in PLACEMENT_FIELDS[selection.kind]},
                     "units": "the dataset's own", "bindings": bindings,
                     "config": str(out / configs.SAVED_CONFIG_NAME)}))
   return 0

@@ -72,8 +72,7 @@ def update_nerf(context: EditContext, iteration: int = 1) -> str:
     losses_config = context.settings.finetune
     losses = finetune.FinetuneLosses(
         lpips_weight=losses_config.lpips_weight if losses_config.lpips_weights else 0.0,
-        patch_size=losses_config.patch_size,
-        opacity_entropy_weight=losses_config.opacity_entropy_weight)
+        patch_size=losses_config.patch_size)
     trainer = finetune.finetune(
         edited, run_dir, model=model, init_variables=variables, config=config,
         loss_settings=losses, lpips_params=finetune.load_lpips(losses_config.lpips_weights),

@@ -56,9 +56,11 @@ def cameras_from_json(value: dict[str, Any]) -> camera_lib.Cameras:
                                    height=value["height"])
 
 
-def _first_iteration_cameras(context: EditContext):
-  """(cameras, report): the user's reference cameras, or placed around the selection."""
-  config, points = context.settings.sheet, context.selection.points
+def first_iteration_cameras(context: EditContext, points=None):
+  """(cameras, report): the user's reference cameras, or placed around the selection (its
+  `points` [K, 3], scene frame; default the context's selection)."""
+  config = context.settings.sheet
+  points = context.selection.points if points is None else points
   count, size = context.layout.num_tiles, context.tile_size
   if config.reference_cameras:
     cameras = read_reference_cameras(config.reference_cameras, count, size)
@@ -73,7 +75,7 @@ def render_reference(context: EditContext, iteration: int = 1) -> str:
   layout = context.layout
   directory = context.directory.path("reference", iteration=iteration)
   if iteration == 1:
-    cameras, report = _first_iteration_cameras(context)
+    cameras, report = first_iteration_cameras(context)
     nerf = context.nerf(0)
   else:
     cameras = cameras_from_json(files.read_json(context.directory.path("reference",

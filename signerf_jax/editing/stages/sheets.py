@@ -29,7 +29,8 @@ def sheet_inputs(context: EditContext, iteration: int) -> generation.SheetInputs
                                            context.layout)
 
 
-def _candidate_path(context: EditContext, recipe: generation.SheetRecipe) -> Path:
+def candidate_path(context: EditContext, recipe: generation.SheetRecipe) -> Path:
+  """The preview's candidate sheet of `recipe` (.npz; beside it the .png)."""
   return context.directory.path("preview", "candidates", f"{recipe.file_stem}.npz")
 
 
@@ -44,7 +45,7 @@ def _known_candidates(context: EditContext) -> KnownSheets:
   expected = _candidate_key(context)
 
   def known(recipe: generation.SheetRecipe) -> np.ndarray | None:
-    path = _candidate_path(context, recipe)
+    path = candidate_path(context, recipe)
     if not path.is_file():
       return None
     stored = load_arrays(path, ("rgb", "key"))
@@ -73,7 +74,7 @@ def preview(context: EditContext) -> str:
     sheets = generation.generate_sheets(context.generator(1), inputs, recipes, known,
                                         progress=bar.update)
   for recipe, sheet in sheets.items():
-    path = _candidate_path(context, recipe)
+    path = candidate_path(context, recipe)
     if known(recipe) is None:
       save_arrays(path, rgb=sheet, key=np.asarray(key))
       files.write_image(path.with_suffix(".png"), sheet)

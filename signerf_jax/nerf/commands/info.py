@@ -26,6 +26,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--run", required=True, help="run directory written by `signerf train`")
 
 
+def default_proxy_size(dataset) -> float:
+  """A proxy size that suits the scene, in the dataset's own units: a fifth of the region
+  modelled in detail (NaN where the dataset records no frame)."""
+  half_size = np.asarray((dataset.frame or {}).get("half_size_in_source_units", [np.nan] * 3))
+  return round(float(DEFAULT_SIZE_FRACTION_OF_REGION * 2 * half_size.mean()), 6)
+
+
 def describe(run_dir) -> dict:
   """The run's scene in the dataset's own units (JSON-friendly)."""
   _, description = training_run.read_model_file(run_dir)
@@ -35,7 +42,6 @@ def describe(run_dir) -> dict:
                                          np.asarray(dataset.cameras.positions, np.float64))
   up = source_from_world[:3, :3] @ reference_cameras.scene_up(dataset.cameras)
   frame = dataset.frame or {}
-  half_size = np.asarray(frame.get("half_size_in_source_units", [np.nan] * 3))
   return {
       "frame": frame,
       "views": {"count": dataset.num_images, "width": dataset.width, "height": dataset.height,
@@ -43,8 +49,7 @@ def describe(run_dir) -> dict:
       "camera_positions": {"min": positions.min(0).round(6).tolist(),
                            "max": positions.max(0).round(6).tolist()},
       "up": (up / np.linalg.norm(up)).round(6).tolist(),
-      "default_proxy_size": round(float(DEFAULT_SIZE_FRACTION_OF_REGION * 2 * half_size.mean()),
-                                  6),
+      "default_proxy_size": default_proxy_size(dataset),
       "units": "the dataset's own",
   }
 

@@ -1,0 +1,190 @@
+"""`signerf view` in a real browser: a headless Chromium (Debian's chromium and chromium-driver,
+driven by selenium) opens the page the viewer serves for a tiny trained run, sees the NeRF,
+the cameras and the proxy, moves the proxy through the panel, previews sheets and saves.
+
+Skipped, with the reason, where no Chromium is installed (the README says how to install one;
+CI installs it)."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from signerf_jax import camera, configs
+from signerf_jax.editing import place
+from signerf_jax.editing.commands import edit_settings, parse_edit_config
+from signerf_jax.editing.config import SelectionConfig
+from signerf_jax.viewer import app
+from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="no headless Chromium: install Debian's chromium and chromium-driver packages "
+    "(README, 'The viewer')")
+WINDOW = (1000, 700)
+
+
+def wait_for(condition, seconds: float, what: str):
+  deadline = time.monotonic() + seconds
+  while time.monotonic() < deadline:
+    value = condition()
+    if value:
+      return value
+    time.sleep(0.1)
+  raise AssertionError(f"timed out after {seconds} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def viewer(viewed_run, viewed_edit):
+  run_dir, _ = viewed_run
+  served = app.Viewer(run_dir, viewed_edit, port=8093, heights=(32, 64))
+  yield served
+  served.close()
+
+
+@pytest.fixture(scope="module")
+def browser(viewer):
+  from selenium import webdriver  # pylint: disable=g-import-not-at-top
+  from selenium.webdriver.chrome.service import Service  # pylint: disable=g-import-not-at-top
+  options = webdriver.ChromeOptions()
+  options.binary_location = CHROMIUM
+  for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
+                   f"--window-size={WINDOW[0]},{WINDOW[1]}", "--use-angle=swiftshader",
+                   "--enable-unsafe-swiftshader", "--force-device-scale-factor=1"):
+    options.add_argument(argument)
+  driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+  driver.get(viewer.url)
+  yield driver
+  driver.quit()
+
+
+def screenshot(browser) -> np.ndarray:
+  """[H, W, 3] uint8 RGB of the page."""
+  image = cv2.imdecode(np.frombuffer(browser.get_screenshot_as_png(), np.uint8),
+                       cv2.IMREAD_COLOR)
+  return image[..., ::-1]
+
+
+def client_of(viewer):
+  return wait_for(lambda: next(iter(viewer.server.get_clients().values()), None), 60,
+                  "the page to connect")
+
+
+def browser_pose(client) -> ViewPose:
+  camera_handle = client.camera
+  return ViewPose(tuple(camera_handle.wxyz), tuple(camera_handle.position), camera_handle.fov,
+                  camera_handle.aspect)
+
+
+def project(pose: ViewPose, points, size) -> np.ndarray:
+  """[K, 2] pixel coordinates of scene points in a `size` (width, height) canvas."""
+  cameras = cameras_for_pose(pose, size[1])
+  pixels, _ = camera.project(cameras, np.asarray(points, np.float32))
+  return np.asarray(pixels[0]) * (size[0] / cameras.width, 1.0)
+
+
+def canvas_of(browser) -> tuple[int, int, int, int]:
+  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
+  canvas = max(browser.find_elements(By.TAG_NAME, "canvas"),
+               key=lambda element: element.size["width"] * element.size["height"])
+  return (canvas.location["x"], canvas.location["y"], canvas.size["width"],
+          canvas.size["height"])
+
+
+def field_inputs(browser, label: str):
+  """The <input> elements of the panel field labelled `label`."""
+  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
+  labels = [element for element in browser.find_elements(
+      By.XPATH, f"//*[normalize-space(text())='{label}']") if element.is_displayed()]
+  assert labels, f"no panel field labelled {label!r}"
+  row = labels[0].find_element(By.XPATH, "./ancestor::*[.//input][1]")
+  return row.find_elements(By.TAG_NAME, "input")
+
+
+def button(browser, text: str):
+  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
+  return wait_for(lambda: next((element for element in browser.find_elements(
+      By.XPATH, f"//button[normalize-space(.)='{text}']") if element.is_displayed()), None),
+      30, f"the {text!r} button")
+
+
+def canvas_screenshot(browser, canvas) -> np.ndarray:
+  """[H, W, 3] float32 in [0, 1]: the page's 3D canvas."""
+  left, top, width, height = canvas
+  time.sleep(1.0)  # The browser draws what it received.
+  return screenshot(browser)[top:top + height, left:left + width].astype(np.float32) / 255
+
+
+def changed_where_hidden(browser, canvas, nodes) -> np.ndarray:
+  """[H, W] bool: where the canvas changes when the scene `nodes` are hidden."""
+  shown = canvas_screenshot(browser, canvas)
+  for node in nodes:
+    node.visible = False
+  hidden = canvas_screenshot(browser, canvas)
+  for node in nodes:
+    node.visible = True
+  return np.abs(shown - hidden).max(-1) > 0.1
+
+
+def test_the_page_shows_the_nerf_the_cameras_and_the_proxy(viewer, browser):
+  client = client_of(viewer)
+  frame = wait_for(lambda: (shown := viewer.shown_frames.get(client.client_id)) is not None
+                   and shown.height == 64 and shown, 120, "the finest frame")
+  canvas = canvas_of(browser)
+  width, height = canvas[2:]
+  page = canvas_screenshot(browser, canvas)
+  # The NeRF's frame is the page's background: where nothing is drawn over it, the page shows
+  # the frame's pixels (resized to the canvas; JPEG-coded).
+  expected = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_LINEAR)
+  difference = np.abs(page - expected).max(-1)
+  assert np.median(difference) < 0.06, np.median(difference)
+  # The proxy: hiding it changes the page where it stands, and only there.
+  mesh = place.selection_mesh(viewer.selection, viewer.dataset)
+  corners = project(browser_pose(client), np.asarray(mesh.vertices), (width, height))
+  (x0, y0), (x1, y1) = corners.min(0) - 4, corners.max(0) + 4
+  changed = changed_where_hidden(browser, canvas, [viewer.selection_mesh])
+  inside = np.zeros_like(changed)
+  inside[max(int(y0), 0):int(y1) + 1, max(int(x0), 0):int(x1) + 1] = True
+  assert changed.sum() > 100 and changed[inside].sum() > 0.95 * changed.sum(), (
+      changed.sum(), changed[inside].sum())
+  # The dataset cameras: hiding their frustums changes the page (their lines).
+  assert changed_where_hidden(browser, canvas, viewer.camera_frustums).sum() > 100
+
+
+def test_moving_the_proxy_in_the_panel_previewing_and_saving(viewer, browser, viewed_edit):
+  from selenium.webdriver.common.keys import Keys  # pylint: disable=g-import-not-at-top
+  client_of(viewer)
+  before = viewer.selection
+  inputs = field_inputs(browser, "Position")
+  assert len(inputs) == 3
+  moved_x = round(before.ground_position[0] + 0.05, 3)  # The field shows 3 decimals.
+  # The field drops a minus typed into an empty field: the digits first, then the sign.
+  inputs[0].click()
+  inputs[0].send_keys(Keys.CONTROL, "a", Keys.BACKSPACE)
+  inputs[0].send_keys(str(abs(moved_x)), Keys.HOME, "-" if moved_x < 0 else "", Keys.ENTER)
+  wait_for(lambda: viewer.selection.ground_position[0] == pytest.approx(moved_x, abs=1e-6),
+           30, "the proxy to move")
+  assert viewer.selection.ground_position[1:] == before.ground_position[1:]
+  # Its handle moved with it, to where the edit will put it.
+  _, handle_position = place.handle_pose(viewer.selection, viewer.dataset)
+  np.testing.assert_allclose(viewer.handle.position, handle_position, atol=1e-5)
+
+  button(browser, "Preview").click()
+  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
+  wait_for(lambda: len([image for image in browser.find_elements(By.TAG_NAME, "img")
+                        if image.is_displayed() and image.size["width"] > 20]) >= 3,
+           600, "the candidate sheets (and the dataset view) to appear")
+  assert (viewed_edit / "preview" / "candidates" / "0.png").is_file()
+  assert viewer.sheet_field.options == ("0", "1")
+
+  button(browser, "Save").click()
+  wait_for(lambda: "Saved" in viewer.status.content, 30, "the save")
+  parse_edit_config(viewed_edit, (), ())
+  saved = configs.build(SelectionConfig)
+  assert saved.ground_position[0] == pytest.approx(moved_x, abs=1e-6)
+  assert edit_settings().edit.prompt == "a red cow"
