@@ -85,8 +85,8 @@ def main() -> None:
     height, width = frames[-1].rgb.shape[:2]
     rows.append([cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_NEAREST)
                  for frame in frames])
-    labels.append([f"{run_dir.name}: {frame.rgb.shape[0]} px, {frame.seconds:.2f} s"
-                   for frame in frames])
+    labels.append([f"{run_dir.parent.name}/{run_dir.name}: {frame.rgb.shape[0]} px, "
+                   f"{frame.seconds:.2f} s" for frame in frames])
   RESULTS.mkdir(exist_ok=True)
   files.write_json(RESULTS / f"{args.name}.json", {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),

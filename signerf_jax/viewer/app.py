@@ -106,6 +106,9 @@ class Viewer:
     self._lock = threading.RLock()  # The selection and the scene nodes that show it.
     self._worker = concurrent.futures.ThreadPoolExecutor(1, "signerf-view-work")  # gin, stages
     self._renderers: dict[int, progressive.ProgressiveRenderer] = {}
+    lower, upper = (np.asarray(corner, np.float64) for corner in self.dataset.scene_bounds)
+    self._extent = float(np.max(upper - lower))  # Sizes of what is drawn follow the scene's.
+    self.handle = None
     self.server = viser.ViserServer(host=host, port=port, verbose=False)
     self.server.scene.set_up_direction(tuple(reference_cameras.scene_up(
         self.dataset.cameras)))
@@ -129,11 +132,10 @@ class Viewer:
 
   def _draw_scene(self) -> None:
     scene, cameras = self.server.scene, self.dataset.cameras
-    lower, upper = (np.asarray(corner, np.float64) for corner in self.dataset.scene_bounds)
-    self._extent = float(np.max(upper - lower))
     scene.add_frame("/scene_frame", axes_length=0.1 * self._extent,
                     axes_radius=0.004 * self._extent)
-    scene.add_line_segments("/scene_bounds", box_edges(lower, upper), (120, 120, 120),
+    scene.add_line_segments("/scene_bounds", box_edges(*self.dataset.scene_bounds),
+                            (120, 120, 120),
                             thickness=LINE_PIXELS, thickness_units="screen")
     self.camera_frustums = []
     for index in range(cameras.num_cameras):
@@ -154,7 +156,7 @@ class Viewer:
       mesh = place.selection_mesh(self.selection, self.dataset)
       local = (np.asarray(mesh.vertices, np.float64) - position) @ rotation
       wxyz = transforms.SO3.from_matrix(rotation).wxyz
-      if not hasattr(self, "handle"):
+      if self.handle is None:
         self.handle = self.server.scene.add_transform_controls(
             "/selection", scale=0.15 * self._extent, depth_test=False,
             disable_rotations=self.selection.kind == "box", wxyz=wxyz, position=position)

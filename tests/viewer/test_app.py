@@ -86,6 +86,19 @@ def test_standing_on_the_surface_puts_a_floating_proxy_on_the_ground(viewer, vie
     viewer.show_selection()
 
 
+def test_a_reroll_previews_the_sheet_with_those_tiles_generated_again(viewer, edit_copy):
+  viewer.reroll_tiles.value = "1"
+  viewer.reroll_seed.value = 7
+  paths = viewer.submit(viewer.reroll).result()
+  assert viewer.recipes == ("0/1@7",)  # Sheet 0 (the edit's seed) with tile 1 from seed 7.
+  assert len(paths) == 3 and all(path.is_file() for path in paths)
+  assert viewer.sheet_field.options == ("0", "1", "0/1@7")
+  assert len(viewer.candidates) == 3
+  viewer.reroll_tiles.value = "one"
+  assert viewer.submit(viewer.reroll).result() is None
+  assert "error" in viewer.status.content and viewer.recipes == ("0/1@7",)
+
+
 def test_save_writes_the_selection_and_settings_that_the_edit_reads(viewer, edit_copy):
   viewer.seed_field.value = 5
   viewer.controlnet_field.value = 0.5
