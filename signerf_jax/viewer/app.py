@@ -106,9 +106,13 @@ class Viewer:
     self._lock = threading.RLock()  # The selection and the scene nodes that show it.
     self._worker = concurrent.futures.ThreadPoolExecutor(1, "signerf-view-work")  # gin, stages
     self._renderers: dict[int, progressive.ProgressiveRenderer] = {}
-    lower, upper = (np.asarray(corner, np.float64) for corner in self.dataset.scene_bounds)
-    self._extent = float(np.max(upper - lower))  # Sizes of what is drawn follow the scene's.
+    # What is drawn is sized by how far the cameras stand from the scene's centre (the bounds of
+    # an unbounded scene say nothing of the size of what the cameras see).
+    centre = np.mean(np.asarray(self.dataset.scene_bounds, np.float64), axis=0)
+    self._distance = float(np.median(np.linalg.norm(
+        np.asarray(self.dataset.cameras.positions, np.float64) - centre, axis=1)))
     self.handle = None
+    self._view_looked_through: int | None = None
     self.server = viser.ViserServer(host=host, port=port, verbose=False)
     self.server.scene.set_up_direction(tuple(reference_cameras.scene_up(
         self.dataset.cameras)))
@@ -132,8 +136,8 @@ class Viewer:
 
   def _draw_scene(self) -> None:
     scene, cameras = self.server.scene, self.dataset.cameras
-    scene.add_frame("/scene_frame", axes_length=0.1 * self._extent,
-                    axes_radius=0.004 * self._extent)
+    scene.add_frame("/scene_frame", axes_length=0.05 * self._distance,
+                    axes_radius=0.002 * self._distance)
     scene.add_line_segments("/scene_bounds", box_edges(*self.dataset.scene_bounds),
                             (120, 120, 120),
                             thickness=LINE_PIXELS, thickness_units="screen")
@@ -144,9 +148,9 @@ class Viewer:
       # NeRF (the panel shows it instead).
       frustum = scene.add_camera_frustum(
           f"/dataset_cameras/{index}", fov=pose.vertical_fov, aspect=pose.aspect,
-          scale=0.04 * self._extent, thickness=LINE_PIXELS, thickness_units="screen",
+          scale=0.03 * self._distance, thickness=LINE_PIXELS, thickness_units="screen",
           color=DATASET_CAMERA_COLOR, wxyz=pose.wxyz, position=pose.position)
-      frustum.on_click(lambda event, index=index: self._jump_to_view(event.client, index))
+      frustum.on_click(lambda event, index=index: self.jump_to_view(event.client, index))
       self.camera_frustums.append(frustum)
 
   def show_selection(self) -> None:
@@ -158,7 +162,8 @@ class Viewer:
       wxyz = transforms.SO3.from_matrix(rotation).wxyz
       if self.handle is None:
         self.handle = self.server.scene.add_transform_controls(
-            "/selection", scale=0.15 * self._extent, depth_test=False,
+            "/selection", scale=0.6 * float(np.ptp(np.asarray(mesh.vertices), 0).max()),
+            depth_test=False,
             disable_rotations=self.selection.kind == "box", wxyz=wxyz, position=position)
         self.handle.on_update(self.handle_moved)
       else:
@@ -179,7 +184,7 @@ class Viewer:
       pose = pose_of_camera(cameras, index)
       self.server.scene.add_camera_frustum(
           f"/reference_cameras/{index}", fov=pose.vertical_fov, aspect=pose.aspect,
-          scale=0.05 * self._extent, thickness=2 * LINE_PIXELS, thickness_units="screen",
+          scale=0.04 * self._distance, thickness=2 * LINE_PIXELS, thickness_units="screen",
           color=REFERENCE_CAMERA_COLOR, wxyz=pose.wxyz, position=pose.position,
           visible=self.show_reference.value)
 
@@ -204,24 +209,34 @@ class Viewer:
       return progressive.render_progressively(self.nerf.model, self.nerf.variables, pose,
                                               is_current, heights=self.heights)
 
-    renderer = progressive.ProgressiveRenderer(frames, show)
-    self._renderers[client.client_id] = renderer
-    client.camera.on_update(lambda camera: renderer.request(ViewPose(
-        tuple(camera.wxyz), tuple(camera.position), camera.fov, camera.aspect)))
-    self._jump_to_view(client, 0)
+    self._renderers[client.client_id] = progressive.ProgressiveRenderer(frames, show)
+    client.camera.on_update(lambda _: self.render_view(client))
+    self.jump_to_view(client, 0)
+
+  def render_view(self, client: viser.ClientHandle) -> None:
+    """Renders what the browser's camera sees. The browser reports the moves its user makes;
+    after the viewer moves the camera itself, it asks here."""
+    camera = client.camera
+    self._renderers[client.client_id].request(ViewPose(
+        tuple(camera.wxyz), tuple(camera.position), camera.fov, camera.aspect))
 
   def _disconnect(self, client: viser.ClientHandle) -> None:
     renderer = self._renderers.pop(client.client_id, None)
     if renderer is not None:
       renderer.close()
 
-  def _jump_to_view(self, client: viser.ClientHandle, index: int) -> None:
+  def jump_to_view(self, client: viser.ClientHandle, index: int) -> None:
     """Puts the browser's camera at dataset view `index` and shows that view's image."""
     pose = pose_of_camera(self.dataset.cameras, index)
     with client.atomic():
       client.camera.fov = pose.vertical_fov
       client.camera.position = pose.position
       client.camera.wxyz = pose.wxyz
+    self.render_view(client)
+    # Its own frustum would frame the view from inside: hidden while looking through it.
+    if self._view_looked_through is not None:
+      self.camera_frustums[self._view_looked_through].visible = True
+    self.camera_frustums[index].visible, self._view_looked_through = False, index
     self.view_image.image = np.asarray(self.dataset.images[index], np.float32)
     self.view_image.label = f"view {index}: {self.dataset.image_names[index]}"
 
