@@ -8,6 +8,7 @@ for, so a moving camera gets a coarse frame after at most one chunk's delay.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 import threading
 import time
@@ -87,16 +88,22 @@ class ProgressiveRenderer:
       self._condition.notify()
     self._thread.join()
 
+  def _is_current(self, version: int) -> bool:
+    return not self._closed and self._version == version
+
+  def _has_news(self, version: int) -> bool:
+    """Closed, or a pose newer than `version` was asked for."""
+    return self._closed or self._version != version
+
   def _run(self) -> None:
-    rendered_version = 0
+    version = 0
     while True:
       with self._condition:
-        self._condition.wait_for(lambda: self._closed or self._version != rendered_version)
+        self._condition.wait_for(functools.partial(self._has_news, version))
         if self._closed:
           return
-        pose, rendered_version = self._pose, self._version
-      version = rendered_version
-      is_current = lambda: not self._closed and self._version == version  # pylint: disable=cell-var-from-loop
+        pose, version = self._pose, self._version
+      is_current = functools.partial(self._is_current, version)
       try:
         for frame in self._frames(pose, is_current):
           if not is_current():  # A newer view was asked for while this frame was made.

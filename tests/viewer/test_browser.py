@@ -1,6 +1,7 @@
 """`signerf view` in a real browser: a headless Chromium (Debian's chromium and chromium-driver,
 driven by selenium) opens the page the viewer serves for a tiny trained run, sees the NeRF,
-the cameras and the proxy, moves the proxy through the panel, previews sheets and saves.
+the cameras and the proxy, moves the proxy through the panel and by dragging its handle with
+the mouse, previews sheets and saves.
 
 Skipped, with the reason, where no Chromium is installed (the README says how to install one;
 CI installs it)."""
@@ -203,3 +204,34 @@ def test_moving_the_proxy_in_the_panel_previewing_and_saving(viewer, browser, vi
   saved = configs.build(SelectionConfig)
   assert saved.ground_position[0] == pytest.approx(moved_x, abs=1e-6)
   assert edit_settings().edit.prompt == "a red cow"
+
+
+def test_dragging_the_handle_with_the_mouse_moves_the_proxy_along_the_arrow(viewer, browser):
+  from selenium.webdriver.common import action_chains  # pylint: disable=g-import-not-at-top
+  from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
+  client = client_of(viewer)
+  viewer.jump_to_view(client, 0)
+  time.sleep(1.0)
+  width, height = canvas_of(browser)[2:]
+  pose = browser_pose(client)
+  rotation, position = place.handle_pose(viewer.selection, viewer.dataset)
+  # The handle's arrow that looks longest from here, grabbed near its tip.
+  arrows = 0.8 * viewer.handle.scale * rotation.T  # [3 axes, 3]
+  ends = [project(pose, np.stack([position, position + arrow]), (width, height))
+          for arrow in arrows]
+  axis = int(np.argmax([np.linalg.norm(end[1] - end[0]) for end in ends]))
+  start, tip = ends[axis]
+  along = (tip - start) / np.linalg.norm(tip - start)
+  canvas = max(browser.find_elements(By.TAG_NAME, "canvas"),
+               key=lambda element: element.size["width"] * element.size["height"])
+  before = viewer.selection
+  (action_chains.ActionChains(browser)
+   .move_to_element_with_offset(canvas, int(tip[0] - width / 2), int(tip[1] - height / 2))
+   .click_and_hold().move_by_offset(*(10 * along).round().astype(int))
+   .move_by_offset(*(30 * along).round().astype(int)).release().perform())
+  wait_for(lambda: viewer.selection != before, 30, "the proxy to move")
+  _, moved = place.handle_pose(viewer.selection, viewer.dataset)
+  shift = moved - position
+  # Along the grabbed arrow, forwards, and nowhere else.
+  assert np.dot(shift, rotation[:, axis]) > 0.9 * np.linalg.norm(shift) > 0
+  assert viewer.selection.heading_degrees == pytest.approx(before.heading_degrees, abs=1e-3)
