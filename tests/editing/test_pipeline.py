@@ -12,7 +12,7 @@ import pytest
 
 from signerf_jax import camera, configs, files
 from signerf_jax.data import load_dataset
-from signerf_jax.editing.project import EditDirectory
+from signerf_jax.editing.project import EditDirectory, frame_name
 from signerf_jax.editing import commands, stages
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import render, sampling
@@ -218,3 +218,16 @@ def test_eval_of_an_edit_prints_one_json_line(finished_edit, capsys):
   out = capsys.readouterr().out
   assert len(out.splitlines()) == 1, out
   assert np.isfinite(json.loads(out)["background"]["psnr_paper"])
+
+
+def test_only_the_views_that_show_the_selection_are_inpainted(finished_edit):
+  directory, lines, _ = finished_edit
+  views = files.read_json(directory / "views" / "views.json")
+  shown = [index for index, count in enumerate(views["mask_pixels"]) if count >= 1]
+  assert views["visible"] == shown and views["empty"] == sorted(
+      set(range(len(views["mask_pixels"]))) - set(shown))
+  written = sorted(path.name for path in (directory / "update" / "images").glob("*.png"))
+  assert written == [f"{frame_name(index)}.png" for index in shown]
+  summary = stage_lines(lines, "update")[-1]
+  assert (f"{len(shown)} views inpainted" in summary and
+          f"{len(views['empty'])} without the selection left as they are" in summary)
