@@ -75,13 +75,18 @@ def _edit_context(run_dir: Path, edit_dir: Path, default_proxy: str
 
 
 def default_selection(dataset, proxy: str) -> SelectionConfig:
-  """A proxy of `info.default_proxy_size` standing at the scene frame's centre, in the dataset's
-  own units (the start when the edit has no selection yet)."""
-  source_from_world = np.linalg.inv(np.asarray(dataset.world_from_source, np.float64))
-  centre = poses_lib.transform_points(source_from_world, np.zeros(3))
+  """A proxy of `info.default_proxy_size` (a tenth of the cameras' distance from the centre
+  where the dataset records no frame) standing at the scene frame's centre, in the dataset's
+  own units: the start when the edit has no selection yet."""
+  world_from_source = np.asarray(dataset.world_from_source, np.float64)
+  centre = poses_lib.transform_points(np.linalg.inv(world_from_source), np.zeros(3))
+  size = info.default_proxy_size(dataset)
+  if not np.isfinite(size):
+    distance = np.median(np.linalg.norm(np.asarray(dataset.cameras.positions), axis=1))
+    size = round(float(0.1 * distance / poses_lib.similarity_scale(world_from_source)), 6)
   return SelectionConfig(kind="proxy", proxy=proxy, frame="source",
                          ground_position=tuple(round(float(value), 6) for value in centre),
-                         ground_size=info.default_proxy_size(dataset))
+                         ground_size=size)
 
 
 def box_edges(lower, upper) -> np.ndarray:
@@ -106,6 +111,7 @@ class Viewer:
     self._lock = threading.RLock()  # The selection and the scene nodes that show it.
     self._worker = concurrent.futures.ThreadPoolExecutor(1, "signerf-view-work")  # gin, stages
     self._renderers: dict[int, progressive.ProgressiveRenderer] = {}
+    self.shown_frames: dict[int, progressive.Frame] = {}  # The last frame sent to each client.
     # What is drawn is sized by how far the cameras stand from the scene's centre (the bounds of
     # an unbounded scene say nothing of the size of what the cameras see).
     centre = np.mean(np.asarray(self.dataset.scene_bounds, np.float64), axis=0)
@@ -244,7 +250,6 @@ class Viewer:
 
   def _build_panel(self, prompt: str) -> None:
     gui, settings = self.server.gui, self.context.settings
-    self.shown_frames: dict[int, progressive.Frame] = {}  # The last frame sent to each client.
     frame = self.dataset.frame
     gui.add_markdown(f"**signerf view** `{self.run_dir}`  \n"
                      + (frame_lib.summary_line(frame) if frame else "scene frame: not recorded")
