@@ -30,6 +30,10 @@ MIN_ACCUMULATION = 0.5
 # The window of pixels the support plane is fitted to: this fraction of the view's height.
 WINDOW_FRACTION = 0.04
 DEFAULT_SIZE_FRACTION = 0.3
+# The fields of a SelectionConfig that say where each kind of selection is.
+PLACEMENT_FIELDS = {"box": ("kind", "frame", "box_min", "box_max"),
+                    "proxy": ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
+                              "heading_degrees", "mesh_up")}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,5 +251,5 @@ def stand_on_surface(model, variables, dataset: Dataset, selection: SelectionCon
     size /= poses_lib.similarity_scale(dataset.world_from_source)
   found = locate(model, variables, dataset, view, tuple(map(float, pixels[view])), size=size)
   placed = found.selection(selection.proxy, selection.heading_degrees, selection.mesh_up)
-  return dataclasses.replace(placed, **{name: getattr(selection, name) for name in (
-      "dilation_radius", "feather_radius", "min_accumulation", "min_mask_pixels")})
+  return dataclasses.replace(selection, **{name: getattr(placed, name)
+                                           for name in PLACEMENT_FIELDS["proxy"]})

@@ -35,6 +35,7 @@ from signerf_jax.editing.stages import reference as reference_stage
 from signerf_jax.editing.stages import sheets as sheets_stage
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import reference_cameras
+from signerf_jax.geometry import selection as selection_lib
 from signerf_jax.nerf.commands import info
 from signerf_jax.viewer import progressive
 from signerf_jax.viewer.cameras import ViewPose, pose_of_camera
@@ -91,7 +92,7 @@ def default_selection(dataset, proxy: str) -> SelectionConfig:
 
 def box_edges(lower, upper) -> np.ndarray:
   """[12, 2, 3] the edges of the axis-aligned box [lower, upper]."""
-  corners = np.stack(np.meshgrid(*np.stack([lower, upper], 1), indexing="ij"), -1).reshape(8, 3)
+  corners = np.asarray(selection_lib.Box.create(lower, upper).corners)
   pairs = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
   return np.asarray([[corners[a], corners[b]] for a, b in pairs], np.float32)
 
@@ -177,12 +178,13 @@ class Viewer:
       self.selection_mesh = self.server.scene.add_mesh_simple(
           "/selection/mesh", local.astype(np.float32), np.asarray(mesh.faces, np.int32),
           color=SELECTION_COLOR, opacity=0.6)
-      self._show_reference_cameras(np.asarray(mesh.vertices, np.float64))
+      self._selection_points = np.asarray(mesh.vertices, np.float64)
+      self._show_reference_cameras()
       self._show_selection_fields()
 
-  def _show_reference_cameras(self, points: np.ndarray) -> None:
+  def _show_reference_cameras(self) -> None:
     try:
-      cameras, _ = reference_stage.first_iteration_cameras(self.context, points)
+      cameras, _ = reference_stage.first_iteration_cameras(self.context, self._selection_points)
     except InputError as error:
       self._say(f"reference cameras: {error}")
       return
@@ -267,8 +269,7 @@ class Viewer:
                   self.heading_field):
       field.on_update(self._fields_changed)
     snap.on_click(lambda _: self.stand_on_surface())
-    self.show_reference.on_update(lambda _: self._show_reference_cameras(
-        np.asarray(place.selection_mesh(self.selection, self.dataset).vertices)))
+    self.show_reference.on_update(lambda _: self._show_reference_cameras())
     with gui.add_folder("Edit"):
       self.prompt_field = gui.add_text("Prompt", prompt)
       self.seed_field = gui.add_number("Seed", settings.edit.seed, min=0, step=1)

@@ -32,16 +32,12 @@ from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.validation import OpenUnitInterval, argument_type
 
 FIGURE_NAME = "placement.png"
-# The fields that say where each kind of selection is.
-PLACEMENT_FIELDS = {"box": ("kind", "frame", "box_min", "box_max"),
-                    "proxy": ("kind", "proxy", "frame", "ground_position", "up", "ground_size",
-                              "heading_degrees", "mesh_up")}
 
 
 def selection_bindings(selection: SelectionConfig) -> list[str]:
-  """The gin bindings that place `selection` (`PLACEMENT_FIELDS`)."""
+  """The gin bindings that place `selection` (`place.PLACEMENT_FIELDS`)."""
   return [f"SelectionConfig.{name} = {gin_value(getattr(selection, name))}"
-          for name in PLACEMENT_FIELDS[selection.kind]]
+          for name in place.PLACEMENT_FIELDS[selection.kind]]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -134,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
   files.write_image(out / FIGURE_NAME, figure)
   print(f"signerf place: {report}; {out / FIGURE_NAME} shows it", file=sys.stderr)
   print(json.dumps({"selection": {name: getattr(selection, name)
-                                  for name in PLACEMENT_FIELDS[selection.kind]},
+                                  for name in place.PLACEMENT_FIELDS[selection.kind]},
                     "units": "the dataset's own", "bindings": bindings,
                     "config": str(out / configs.SAVED_CONFIG_NAME)}))
   return 0
