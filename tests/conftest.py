@@ -1,17 +1,23 @@
-"""Shared test plumbing: the ../shared/data location, the `shared_data` marker, no persistent
-compilation cache, and a broken torchvision hidden from transformers."""
+"""Shared test plumbing: the ../shared/data location, the `shared_data` marker, a compilation
+cache private to the session, and a broken torchvision hidden from transformers."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
 # The CLI keeps compiled programs in the user's cache directory between commands; tests (and the
-# commands they start) must neither read a machine's cache nor write to it.
-os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "false")
+# commands they start) must neither read a machine's cache nor write to it. Many tests compile
+# the same programs again (a NeRF step, a tiny pipeline, in-process and in the commands they
+# start), so they share a cache that lives as long as the session.
+SESSION_COMPILATION_CACHE = tempfile.mkdtemp(prefix="signerf_jax_tests_xla_")
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", SESSION_COMPILATION_CACHE)
+os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "true")
 
 REPOSITORY_ROOT = Path(__file__).resolve().parent.parent
 # Real scenes and meshes live outside the project; SIGNERF_SHARED_DATA overrides the location.
@@ -32,6 +38,10 @@ def _hide_unloadable_torchvision() -> None:
 
 
 _hide_unloadable_torchvision()
+
+
+def pytest_sessionfinish(session, exitstatus):
+  shutil.rmtree(SESSION_COMPILATION_CACHE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -76,9 +76,9 @@ def grid_layout(num_levels: int, base_resolution: int, finest_resolution: int,
   for resolution in resolutions:
     vertices = (resolution + 1)**3
     is_dense = (not hashed) or vertices <= max_rows
-    size = vertices if is_dense else max_rows
-    # Rows are padded to a multiple of 8 so the next level starts aligned.
-    size = int(math.ceil(size / 8) * 8)
+    # Rows are padded to a multiple of 8 so the next level starts aligned; a hashed level keeps
+    # its power-of-two size (at least 8), which `_corner_rows` relies on.
+    size = int(math.ceil(vertices / 8) * 8) if is_dense else max(max_rows, 8)
     table_sizes.append(size)
     dense.append(is_dense)
     offsets.append(offset)
@@ -87,22 +87,41 @@ def grid_layout(num_levels: int, base_resolution: int, finest_resolution: int,
                     features_per_level)
 
 
-def _corner_rows(layout: GridLayout, cells: jax.Array) -> jax.Array:
-  """Flat-table rows of grid vertices.
+def _axis_terms(layout: GridLayout, lower: jax.Array) -> jax.Array:
+  """Each axis's share of a vertex's row, for the cell's lower and upper vertex along it.
+
+  A dense row is x + (N+1) y + (N+1)^2 z and a hashed one x p0 ^ y p1 ^ z p2: both combine one
+  term per axis, so the eight corners of a cell need these six terms and two additions or XORs
+  each, not three multiplications (the encoding's arithmetic costs as much as its gathers).
 
   Args:
-    cells: [..., L, 3] uint32 integer vertex coordinates per level.
+    lower: [..., L, 3] uint32 lower vertex of each level's cell.
+  Returns:
+    [..., L, 3, 2] uint32: axis terms of the lower (0) and upper (1) vertex.
+  """
+  vertices = np.asarray(layout.resolutions, np.uint32) + 1
+  dense_factors = np.stack([np.ones_like(vertices), vertices, vertices * vertices], -1)
+  factors = np.where(np.asarray(layout.dense)[:, None], dense_factors,
+                     np.asarray(_HASH_PRIMES, np.uint32)).astype(np.uint32)  # [L, 3]
+  return jnp.stack([lower, lower + np.uint32(1)], -1) * factors[:, :, None]
+
+
+def _corner_rows(layout: GridLayout, terms: jax.Array, corner: np.ndarray) -> jax.Array:
+  """Flat-table rows of one corner of each level's cell.
+
+  Args:
+    terms: [..., L, 3, 2] from `_axis_terms`.
+    corner: [3] 0 or 1 per axis.
   Returns:
     [..., L] int32 rows in the flat table.
   """
-  resolutions = np.asarray(layout.resolutions, np.uint32) + 1
-  dense_rows = cells[..., 0] + resolutions * (cells[..., 1] + resolutions * cells[..., 2])
-  hashed_rows = ((cells[..., 0] * np.uint32(_HASH_PRIMES[0]))
-                 ^ (cells[..., 1] * np.uint32(_HASH_PRIMES[1]))
-                 ^ (cells[..., 2] * np.uint32(_HASH_PRIMES[2])))
-  rows = jnp.where(np.asarray(layout.dense), dense_rows, hashed_rows)
-  rows = rows % np.asarray(layout.table_sizes, np.uint32)
-  return (rows + np.asarray(layout.offsets, np.uint32)).astype(jnp.int32)
+  x, y, z = (terms[..., axis, int(corner[axis])] for axis in range(3))
+  rows = jnp.where(np.asarray(layout.dense), x + y + z, x ^ y ^ z)
+  # Dense rows are in range already; hashed tables have power-of-two sizes, so the modulo is a
+  # mask (an integer division per element costs more than the rest of the hashing).
+  masks = np.asarray([0xFFFFFFFF if dense else size - 1
+                      for dense, size in zip(layout.dense, layout.table_sizes)], np.uint32)
+  return ((rows & masks) + np.asarray(layout.offsets, np.uint32)).astype(jnp.int32)
 
 
 def hash_grid_encode(table: jax.Array, layout: GridLayout, points: jax.Array,
@@ -123,11 +142,13 @@ def hash_grid_encode(table: jax.Array, layout: GridLayout, points: jax.Array,
   # The top face (scaled == N) uses cell N - 1 with fraction 1, keeping corner N + 1 unused.
   lower = jnp.minimum(jnp.floor(scaled), resolutions[:, None] - 1.0)
   fraction = scaled - lower
-  lower = lower.astype(jnp.uint32)
+  terms = _axis_terms(layout, lower.astype(jnp.uint32))
+  axis_weights = jnp.stack([1.0 - fraction, fraction], -1)  # [..., L, 3, 2]
   features = 0.0
   for corner in _CORNERS:
-    rows = _corner_rows(layout, lower + corner)
-    weight = jnp.prod(jnp.where(corner == 1, fraction, 1.0 - fraction), axis=-1)  # [..., L]
+    rows = _corner_rows(layout, terms, corner)
+    weight = (axis_weights[..., 0, corner[0]] * axis_weights[..., 1, corner[1]]
+              * axis_weights[..., 2, corner[2]])  # [..., L]
     corner_features = table.at[rows].get(mode="promise_in_bounds")  # [..., L, F]
     features = features + weight[..., None] * corner_features
   if level_weights is not None:

@@ -138,24 +138,25 @@ def evaluate_in_groups(field_at, mask, unit_points, directions, appearance, budg
   return densities, rgbs, ray_complete.reshape(-1), jnp.sum(samples)
 
 
-def evaluate_every_occupied(field_at, mask, unit_points, directions, appearance, budget: int):
-  """Rendering: `field_at` (as `evaluate_in_groups`) at every occupied sample, one budget-sized
-  piece at a time (forward only).
+def evaluate_every_occupied(field_at, mask, unit_points, directions, appearance,
+                            piece_size: int):
+  """Rendering: `field_at` (as `evaluate_in_groups`) at every occupied sample, `piece_size`
+  samples at a time (forward only).
 
   Returns:
     density [R * N], rgb [R * N, 3] and the number of samples evaluated.
   """
-  padded = int(np.ceil(mask.size / budget)) * budget
+  padded = int(np.ceil(mask.size / piece_size)) * piece_size
   all_indices, _, _ = compact(mask, padded)
   count = jnp.sum(mask)
 
   def body(state):
     piece, densities, rgbs = state
-    indices = jax.lax.dynamic_slice(all_indices, (piece * budget,), (budget,))
+    indices = jax.lax.dynamic_slice(all_indices, (piece * piece_size,), (piece_size,))
     density, rgb = field_at(mask, unit_points, directions, appearance, indices)
     return piece + 1, _scatter(densities, indices, density), _scatter(rgbs, indices, rgb)
 
   _, densities, rgbs = jax.lax.while_loop(
-      lambda state: state[0] * budget < count, body,
+      lambda state: state[0] * piece_size < count, body,
       (jnp.int32(0), jnp.zeros(mask.size, jnp.float32), jnp.zeros((mask.size, 3), jnp.float32)))
   return densities, rgbs, count

@@ -142,41 +142,52 @@ def test_crops_cut_tiles_around_the_selection_and_paste_back_through_the_mask(ge
   np.testing.assert_array_equal(edited[outside], views.images[outside])
 
 
-# Runs in a process with four CPU devices: the batch of four views sharded one per device.
+# Runs in a process with eight CPU devices: the same eight views sharded over 2, 4 and 8 of them.
+SHARDED_DEVICE_COUNTS = (2, 4, 8)
+SHARDED_VIEWS = 8
 SHARDED_UPDATE = textwrap.dedent("""
     import sys
     import jax
     import numpy as np
     model, tests, output = sys.argv[1:]
     sys.path.insert(0, tests)
+    from signerf_jax import parallel
     from signerf_jax.editing import generation, update
     from random_pipeline import TINY_OPTIONS
-    from test_update import LAYOUT, make_sheet, make_views
-    assert len(jax.devices()) == 4
-    generator = generation.load_generator(model, "", "", "a red cow", "", TINY_OPTIONS,
-                                          views_per_device=1)
-    views = make_views(4)
-    shards = len(generator.shard(views.images).sharding.device_set)
-    keys = np.stack([generation.view_key(3, index) for index in range(4)])
-    edited, _ = update.update_batch(generator, *make_sheet(), LAYOUT, views, keys)
-    np.savez(output, edited=edited, shards=shards)
+    from test_update import LAYOUT, SHARDED_DEVICE_COUNTS, SHARDED_VIEWS, make_sheet, make_views
+    assert len(jax.devices()) == max(SHARDED_DEVICE_COUNTS)
+    views = make_views(SHARDED_VIEWS)
+    keys = np.stack([generation.view_key(3, index) for index in range(SHARDED_VIEWS)])
+    results = {}
+    for count in SHARDED_DEVICE_COUNTS:
+      mesh = parallel.device_mesh(jax.devices()[:count], generation.MESH_AXIS)
+      generator = generation.load_generator(model, "", "", "a red cow", "", TINY_OPTIONS,
+                                            views_per_device=SHARDED_VIEWS // count, mesh=mesh)
+      results[f"shards_{count}"] = len(generator.shard(views.images).sharding.device_set)
+      results[f"edited_{count}"] = update.update_batch(generator, *make_sheet(), LAYOUT, views,
+                                                       keys)[0]
+    np.savez(output, **results)
 """)
 
 
-def test_the_update_sharded_over_four_devices_equals_the_one_device_update(generator,
-                                                                           random_model,
-                                                                           tmp_path):
+def test_the_update_sharded_over_two_four_and_eight_devices_equals_the_one_device_update(
+    generator, random_model, tmp_path):
   output = tmp_path / "sharded.npz"
-  environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-                     JAX_PLATFORMS="cpu")
+  environment = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=(
+      f"--xla_force_host_platform_device_count={max(SHARDED_DEVICE_COUNTS)}"))
   result = subprocess.run([sys.executable, "-c", SHARDED_UPDATE, str(random_model),
                            str(Path(__file__).parent), str(output)], env=environment,
                           capture_output=True, text=True, timeout=600, check=False)
   assert result.returncode == 0, result.stderr[-3000:]
   sharded = np.load(output)
-  assert int(sharded["shards"]) == 4
-  # Here: one device, the same four views in one batch.
+  # Here: one device, the same views in batches of four.
   assert len(generator.mesh.devices.ravel()) == 1 and generator.batch_size == 4
-  keys = np.stack([generation.view_key(3, index) for index in range(4)])
-  edited, _ = update.update_batch(generator, *make_sheet(), LAYOUT, make_views(4), keys)
-  np.testing.assert_allclose(sharded["edited"], edited, rtol=0, atol=1e-5)
+  views = make_views(SHARDED_VIEWS)
+  keys = np.stack([generation.view_key(3, index) for index in range(SHARDED_VIEWS)])
+  edited = np.concatenate([
+      update.update_batch(generator, *make_sheet(), LAYOUT, take(views, batch), keys[batch])[0]
+      for batch in np.split(np.arange(SHARDED_VIEWS), SHARDED_VIEWS // 4)])
+  for count in SHARDED_DEVICE_COUNTS:
+    assert int(sharded[f"shards_{count}"]) == count
+    np.testing.assert_allclose(sharded[f"edited_{count}"], edited, rtol=0, atol=1e-5,
+                               err_msg=f"{count} devices")

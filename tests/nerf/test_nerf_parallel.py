@@ -1,4 +1,4 @@
-"""Data-parallel training: the same steps on one or two devices, independent sample groups, and
+"""Data-parallel training: the same steps on 1, 2, 4 and 8 devices, independent sample groups, and
 the checks on batch sizes and multi-host arguments."""
 
 import dataclasses
@@ -23,8 +23,9 @@ STEPS = 8
 # Occupancy refreshes at steps 4 and 8: the grid update runs on the mesh too.
 CONFIG = dataclasses.replace(SMALL_CONFIG, steps=STEPS, occupancy_warmup_steps=4)
 
-# Runs in a process with two CPU devices: the same run on a one-device and a two-device mesh.
-TWO_DEVICE_TRAINING = textwrap.dedent("""
+# Runs in a process with eight CPU devices: the same run on meshes of 1, 2, 4 and 8 of them.
+DEVICE_COUNTS = (1, 2, 4, 8)
+MULTI_DEVICE_TRAINING = textwrap.dedent("""
     import dataclasses
     import sys
     import jax
@@ -37,12 +38,12 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
     from signerf_jax.nerf import train, training_run
     from analytic_scene import sphere_dataset
     from small_nerf import count_compilations, small_model
-    from test_nerf_parallel import CONFIG, STEPS
-    assert len(jax.devices()) == 2
+    from test_nerf_parallel import CONFIG, DEVICE_COUNTS, STEPS
+    assert len(jax.devices()) == max(DEVICE_COUNTS)
     sphere = sphere_dataset()
     model = small_model(sphere)
     results = {}
-    for count in (1, 2):
+    for count in DEVICE_COUNTS:
       mesh = parallel.device_mesh(jax.devices()[:count])
       trainer = training_run.make_trainer(sphere, model=model, config=CONFIG, mesh=mesh)
       losses = [trainer.run(until_step=step, progress=False)["loss"]
@@ -69,26 +70,28 @@ TWO_DEVICE_TRAINING = textwrap.dedent("""
 """)
 
 
-def test_two_devices_train_like_one(tmp_path):
+def test_two_four_and_eight_devices_train_like_one(tmp_path):
   output = tmp_path / "runs.npz"
-  environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-                     JAX_PLATFORMS="cpu")
-  result = subprocess.run([sys.executable, "-c", TWO_DEVICE_TRAINING, str(Path(__file__).parent),
-                           str(output)], env=environment, capture_output=True, text=True,
-                          timeout=300, check=False)
+  environment = dict(os.environ, JAX_PLATFORMS="cpu",
+                     XLA_FLAGS=f"--xla_force_host_platform_device_count={max(DEVICE_COUNTS)}")
+  result = subprocess.run([sys.executable, "-c", MULTI_DEVICE_TRAINING,
+                           str(Path(__file__).parent), str(output)], env=environment,
+                          capture_output=True, text=True, timeout=600, check=False)
   assert result.returncode == 0, result.stderr[-3000:]
   runs = np.load(output)
-  assert int(runs["devices_1"]) == 1 and int(runs["devices_2"]) == 2
-  assert int(runs["compilations_1"]) == int(runs["compilations_2"]) == 0
-  # Two devices reduce gradients and loss sums across devices, and each evaluates only its own
-  # rays' samples: nothing is gathered from the other device.
-  assert int(runs["all_reduces"]) > 0 and int(runs["all_gathers"]) == 0
-  np.testing.assert_allclose(runs["losses_2"], runs["losses_1"], rtol=1e-5)
   names = sorted(name for name in runs.files if name.startswith("variables_1_"))
   assert names
-  for name in names:
-    one, two = runs[name], runs[name.replace("_1_", "_2_")]
-    np.testing.assert_allclose(two, one, rtol=1e-4, atol=1e-6, err_msg=name)
+  for count in DEVICE_COUNTS:
+    assert int(runs[f"devices_{count}"]) == count
+    assert int(runs[f"compilations_{count}"]) == 0
+    np.testing.assert_allclose(runs[f"losses_{count}"], runs["losses_1"], rtol=1e-5,
+                               err_msg=f"{count} devices")
+    for name in names:
+      np.testing.assert_allclose(runs[name.replace("_1_", f"_{count}_")], runs[name],
+                                 rtol=1e-4, atol=1e-6, err_msg=f"{name}, {count} devices")
+  # Eight devices reduce gradients and loss sums across devices, and each evaluates only its
+  # own rays' samples: nothing is gathered from the others.
+  assert int(runs["all_reduces"]) > 0 and int(runs["all_gathers"]) == 0
   assert str(runs["odd_batch_field"]) == "Capacity.rays_per_batch"
 
 

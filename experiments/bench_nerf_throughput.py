@@ -1,0 +1,130 @@
+"""Training and rendering throughput of trained NeRFs: rays and field samples per second, with
+the held-out PSNR of what was rendered, so that speed is reported with its error.
+
+  python experiments/bench_nerf_throughput.py --run lego=RUN_DIR --run stitch_200=RUN_DIR \
+      [--views 4] [--train_steps 40] [--name bench_nerf_throughput]
+
+For each run (a `signerf train` directory):
+  * rendering: its first `views` held-out views with the renderer the viewer, the views stage and
+    the evaluation use (`nerf.render`, chunks of 4096 rays), timed the second time (the first
+    compiles); rays/s, field samples per ray and per second (every network evaluation: the
+    proposal networks' too, and with the occupancy sampler only the occupied samples), and the
+    views' PSNR;
+  * training: `train_steps` steps from its checkpoint on its training views, after
+    `warmup_steps` untimed ones (compilation); rays/s and field samples/s.
+Writes experiments/results/<name>.json with the machine and its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from signerf_jax import camera, files
+from signerf_jax.metrics import image as image_metrics
+from signerf_jax.nerf import evaluate, render, train, training_run
+from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.commands import load_recorded_dataset
+
+RESULTS = Path(__file__).resolve().parent / "results"
+CHUNK_SIZE = 4096
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _samples_in_chunk(model: nerf_model.NerfModel, variables, chunk: camera.Rays):
+  """Field samples a rendering chunk evaluates (occupied ones only with the occupancy sampler)."""
+  _, aux = nerf_model.render_rays(model, variables, chunk, jax.random.PRNGKey(0), training=False)
+  return aux["samples_evaluated"]
+
+
+def render_samples_per_ray(model, variables, cameras, indices) -> float:
+  """Mean field samples per ray over the whole chunks of the views `indices`."""
+  samples = rays = 0
+  for index in indices:
+    flat = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + np.asarray(a).shape[2:]),
+                        render.image_rays(cameras, int(index)))
+    for start in range(0, flat.shape[0] - CHUNK_SIZE + 1, CHUNK_SIZE):
+      chunk = jax.tree.map(lambda a: a[start:start + CHUNK_SIZE], flat)  # pylint: disable=cell-var-from-loop
+      samples += int(_samples_in_chunk(model, variables, chunk))
+      rays += CHUNK_SIZE
+  return samples / max(rays, 1)
+
+
+def measure_rendering(run, held_out, views: int) -> dict[str, Any]:
+  indices = range(min(views, held_out.num_images))
+  cameras = held_out.cameras.take(list(indices))
+  render.render_cameras(run.model, run.variables, cameras, CHUNK_SIZE)  # Compiles.
+  started = time.perf_counter()
+  renders = render.render_cameras(run.model, run.variables, cameras, CHUNK_SIZE)
+  seconds = time.perf_counter() - started
+  rays = len(indices) * held_out.width * held_out.height
+  per_ray = render_samples_per_ray(run.model, run.variables, held_out.cameras, indices)
+  psnr = np.mean([float(image_metrics.psnr_jit(renders["rgb"][i], held_out.images[index]))
+                  for i, index in enumerate(indices)])
+  return {"views": len(indices), "image_size": [held_out.width, held_out.height],
+          "seconds": seconds, "rays_per_second": rays / seconds,
+          "field_samples_per_ray": per_ray, "field_samples_per_second": rays * per_ray / seconds,
+          "held_out_psnr": float(psnr)}
+
+
+def measure_training(run, training, warmup_steps: int, steps: int) -> dict[str, Any]:
+  config = dataclasses.replace(train.TrainConfig(), steps=warmup_steps + steps)
+  trainer = training_run.make_trainer(training, model=run.model, config=config,
+                                      init_variables=run.variables)
+  trainer.run(until_step=warmup_steps, progress=False)
+  samples_before, started = trainer.samples_trained, time.perf_counter()
+  trainer.run(until_step=warmup_steps + steps, progress=False)
+  seconds = time.perf_counter() - started
+  rays = steps * run.model.capacity.rays_per_batch
+  return {"steps": steps, "rays_per_batch": run.model.capacity.rays_per_batch,
+          "seconds": seconds, "steps_per_second": steps / seconds,
+          "rays_per_second": rays / seconds,
+          "field_samples_per_second": (trainer.samples_trained - samples_before) / seconds}
+
+
+def measure_run(run_dir: Path, views: int, warmup_steps: int, steps: int) -> dict[str, Any]:
+  run = evaluate.load_run(run_dir)
+  held_out = load_recorded_dataset(run.description, "eval")
+  training = load_recorded_dataset(run.description, "train")
+  capacity = run.model.capacity
+  return {"run": str(run_dir), "scene_kind": run.model.scene.kind, "sampler": capacity.sampler,
+          "proposal_samples": list(capacity.proposal_samples),
+          "samples_per_ray": capacity.samples_per_ray, "step_trained": run.step,
+          "rendering": measure_rendering(run, held_out, views),
+          "training": measure_training(run, training, warmup_steps, steps)}
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN_DIR",
+                      help="a trained run to measure (repeatable)")
+  parser.add_argument("--views", type=int, default=4, help="held-out views rendered per run")
+  parser.add_argument("--warmup_steps", type=int, default=5)
+  parser.add_argument("--train_steps", type=int, default=40)
+  parser.add_argument("--name", default="bench_nerf_throughput", help="results/<name>.json")
+  args = parser.parse_args()
+  result: dict[str, Any] = {
+      "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                  "jax": jax.__version__, "load_average_at_start": os.getloadavg()},
+      "chunk_size": CHUNK_SIZE, "runs": {}}
+  for entry in args.run:
+    name, _, run_dir = entry.partition("=")
+    result["runs"][name] = measure_run(Path(run_dir), args.views, args.warmup_steps,
+                                       args.train_steps)
+    print(name, result["runs"][name], flush=True)
+  result["load_average_at_end"] = os.getloadavg()
+  files.write_json(RESULTS / f"{args.name}.json", result)
+  print(f"bench_nerf_throughput: results in {RESULTS / args.name}.json")
+
+
+if __name__ == "__main__":
+  main()
