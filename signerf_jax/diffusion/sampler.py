@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -177,7 +178,11 @@ def draw_noise(keys: jax.Array, latent_shape: tuple[int, int, int], num_steps: i
   """
   def one_sample(key):
     latents_key, image_key, masked_image_key, steps_key = jax.random.split(key, 4)
-    normal = lambda k, shape: jax.random.normal(k, shape, jnp.float32)
+    # Drawn flat and reshaped: the same values (partitionable threefry counts elements in
+    # row-major order), but XLA compiles a flat draw 3x faster than a 3-D or 4-D one (1.9 s
+    # against 0.6 s here, most of a cold preview's compilation outside the sampler).
+    normal = lambda k, shape: jax.random.normal(k, (math.prod(shape),), jnp.float32).reshape(
+        shape)
     return SamplerNoise(latents=normal(latents_key, latent_shape),
                         image_posterior=normal(image_key, latent_shape),
                         masked_image_posterior=normal(masked_image_key, latent_shape),
