@@ -43,3 +43,24 @@ def test_update_decays_to_empty_when_density_vanishes():
                             jnp.int32(index), 8, 0.5)
   assert float(grid.max()) < 1e-3
   assert not np.any(occupancy.occupied_cells(grid, 0.1, 0.01) & (grid > 0.11))
+
+
+def test_rendering_evaluates_every_occupied_sample_whatever_the_piece_size():
+  """Pieces smaller than, equal to and larger than the occupied count give the same field,
+  zero at empty samples, and the count of occupied samples."""
+  mask = jnp.asarray(np.random.default_rng(0).uniform(size=(6, 9)) < 0.4)
+  unit_points = jnp.linspace(0.0, 1.0, 6 * 9 * 3).reshape(6, 9, 3)
+
+  def field_at(mask, unit_points, directions, appearance, indices):
+    safe = jnp.minimum(indices, mask.size - 1)
+    density = unit_points.reshape(-1, 3)[safe, 0] + 1.0
+    return jnp.where(indices < mask.size, density, 0.0), jnp.repeat(density[:, None], 3, 1)
+
+  expected = np.where(np.asarray(mask).reshape(-1), np.asarray(unit_points).reshape(-1, 3)[:, 0]
+                      + 1.0, 0.0)
+  for piece_size in (1, 4, int(mask.sum()), 64):
+    density, rgb, count = occupancy.evaluate_every_occupied(
+        field_at, mask, unit_points, jnp.zeros((6, 3)), jnp.zeros(6, jnp.int32), piece_size)
+    np.testing.assert_allclose(density, expected, err_msg=f"pieces of {piece_size}")
+    np.testing.assert_allclose(rgb[:, 0], expected, err_msg=f"pieces of {piece_size}")
+    assert int(count) == int(mask.sum())
