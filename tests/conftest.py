@@ -14,9 +14,10 @@ import pytest
 # The CLI keeps compiled programs in the user's cache directory between commands; tests (and the
 # commands they start) must neither read a machine's cache nor write to it. Many tests compile
 # the same programs again (a NeRF step, a tiny pipeline, in-process and in the commands they
-# start), so they share a cache that lives as long as the session.
+# start), so they share a cache that lives as long as the session (a tenth of the suite's
+# time); JAX_ENABLE_COMPILATION_CACHE=false turns it off.
 SESSION_COMPILATION_CACHE = tempfile.mkdtemp(prefix="signerf_jax_tests_xla_")
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", SESSION_COMPILATION_CACHE)
+os.environ["JAX_COMPILATION_CACHE_DIR"] = SESSION_COMPILATION_CACHE
 os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "true")
 
 REPOSITORY_ROOT = Path(__file__).resolve().parent.parent
