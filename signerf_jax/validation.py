@@ -65,6 +65,15 @@ Vector3 = tuple[float, float, float]
 Color = tuple[UnitInterval, UnitInterval, UnitInterval]
 
 
+class CheckedFields:
+  """Base of the settings dataclasses: building one checks every field against its annotation
+  (`check_fields`), so gin, flags and Python calls are all checked before any work. A subclass
+  with rules across fields calls `super().__post_init__()` first."""
+
+  def __post_init__(self):
+    check_fields(self)
+
+
 def check_fields(config: Any) -> None:
   """Checks every field of the dataclass instance `config` against its annotation.
 

@@ -227,7 +227,7 @@ def _unit_vector(rng: np.random.Generator) -> np.ndarray:
 
 
 @dataclasses.dataclass(frozen=True)
-class SceneSettings:
+class SceneSettings(validation.CheckedFields):
   """What a random scene holds (gin: `synthetic_scene.<field>`).
 
   Attributes:
@@ -260,7 +260,7 @@ class SceneSettings:
   def __post_init__(self):
     """Also rejects settings whose objects cannot fit: radii out of order, or a scene outside
     the unit box."""
-    validation.check_fields(self)
+    super().__post_init__()
     minimum_radius, maximum_radius = self.object_radius_range
     if not minimum_radius <= maximum_radius:
       raise InputError(f"need min <= max, got {self.object_radius_range}",

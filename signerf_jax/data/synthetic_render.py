@@ -43,7 +43,7 @@ _INTERSECTORS = {"sphere": raycast.intersect_sphere, "box": raycast.intersect_bo
 
 
 @dataclasses.dataclass(frozen=True)
-class CameraRig:
+class CameraRig(validation.CheckedFields):
   """Square pinhole cameras looking at the scene centre (gin: `synthetic_cameras.<field>`).
 
   Attributes:
@@ -64,9 +64,6 @@ class CameraRig:
   distance: PositiveFloat = 2.8
   elevation_range_degrees: tuple[Elevation, Elevation] = (15.0, 70.0)
   arc_degrees: Annotated[float, Range(0, 360, low_inclusive=False)] = 120.0
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
 
 def make_cameras(rig: CameraRig, scene_bounds) -> camera.Cameras:

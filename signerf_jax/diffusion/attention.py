@@ -24,7 +24,7 @@ from signerf_jax.validation import NonNegativeInt, PositiveInt
 
 
 @dataclasses.dataclass(frozen=True)
-class AttentionOptions:
+class AttentionOptions(validation.CheckedFields):
   """How attention is evaluated (results agree to float rounding; speed and memory differ;
   gin: `AttentionOptions.<field>`).
 
@@ -38,9 +38,6 @@ class AttentionOptions:
   """
   query_chunk_size: PositiveInt = 1024
   max_plain_scores: NonNegativeInt = 2**18
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
 
 def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,

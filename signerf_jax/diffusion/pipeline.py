@@ -181,7 +181,7 @@ def encode_prompts(pipeline: Pipeline, prompts: str | Sequence[str],
 
 
 @dataclasses.dataclass(frozen=True)
-class GenerationOptions:
+class GenerationOptions(validation.CheckedFields):
   """The knobs of a generation (diffusers' argument names and meanings; gin:
   `GenerationOptions.<field>`).
 
@@ -213,7 +213,7 @@ class GenerationOptions:
   target_size: tuple[PositiveInt, PositiveInt] | None = None
 
   def __post_init__(self):
-    validation.check_fields(self)
+    super().__post_init__()
     if int(self.num_inference_steps * self.strength) < 1:
       raise InputError(f"strength {self.strength} of {self.num_inference_steps} steps leaves "
                        "no step to run", field="GenerationOptions.strength")

@@ -55,7 +55,6 @@ from signerf_jax.clip.text import PromptEmbeddings
 from signerf_jax.diffusion import guidance as guidance_lib
 from signerf_jax.diffusion import mask_processing
 from signerf_jax.diffusion import vae as vae_lib
-from signerf_jax.diffusion.blocks import ControlNetResiduals
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.solvers import Schedule
 from signerf_jax.diffusion.unet import UNet2DCondition
@@ -266,38 +265,30 @@ def _loop_constants(models: DiffusionModels, prompt: PromptEmbeddings,
       initial_noise=noise.latents)
 
 
-def _controlnet_residuals(models: DiffusionModels, constants: _LoopConstants,
-                          settings: SamplerSettings, controlnet_conditioning_scale: jax.Array,
-                          model_input: jax.Array, batch_latents: jax.Array, timestep: jax.Array
-                          ) -> ControlNetResiduals:
-  """The ControlNet's residuals for the UNet batch `batch_latents` (`model_input` for both
-  halves under guidance)."""
-  controlnet = functools.partial(models.controlnet.apply, {"params": models.controlnet_params},
-                                 guess_mode=settings.guess_mode)
-  if settings.guess_mode and settings.classifier_free_guidance:
-    # The ControlNet sees only the conditional half; the unconditional half gets nothing.
-    conditional = lambda x: None if x is None else x[model_input.shape[0]:]
-    residuals = controlnet(model_input, timestep, conditional(constants.text_states),
-                           constants.control, controlnet_conditioning_scale,
-                           text_embeds=conditional(constants.text_embeds),
-                           time_ids=conditional(constants.time_ids))
-    return jax.tree.map(lambda r: jnp.concatenate([jnp.zeros_like(r), r]), residuals)
-  return controlnet(batch_latents, timestep, constants.text_states,
-                    guidance_lib.both_halves(constants.control, settings.classifier_free_guidance),
-                    controlnet_conditioning_scale, text_embeds=constants.text_embeds,
-                    time_ids=constants.time_ids)
-
-
 def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings: SamplerSettings,
-                   guidance_scale: jax.Array, controlnet_conditioning_scale: jax.Array,
+                   guidance: guidance_lib.Guidance, step_index: jax.Array,
                    model_input: jax.Array, timestep: jax.Array) -> jax.Array:
-  """The guided noise (or v) prediction for the scheduler-scaled latents [B, h, w, C]."""
+  """The guided noise (or v) prediction for the scheduler-scaled latents [B, h, w, C] at step
+  `step_index` of the run (which selects its ControlNet conditioning scale)."""
   guided = settings.classifier_free_guidance
   batch_latents = guidance_lib.both_halves(model_input, guided)
   residuals = None
   if models.controlnet is not None:
-    residuals = _controlnet_residuals(models, constants, settings, controlnet_conditioning_scale,
-                                      model_input, batch_latents, timestep)
+    controlnet = functools.partial(
+        models.controlnet.apply, {"params": models.controlnet_params},
+        controlnet_conditioning_scale=guidance.controlnet_conditioning_scale[step_index],
+        guess_mode=settings.guess_mode)
+    if settings.guess_mode and guided:
+      # The ControlNet sees only the conditional half; the unconditional half gets nothing.
+      conditional = lambda x: None if x is None else x[model_input.shape[0]:]
+      residuals = controlnet(model_input, timestep, conditional(constants.text_states),
+                             constants.control, text_embeds=conditional(constants.text_embeds),
+                             time_ids=conditional(constants.time_ids))
+      residuals = jax.tree.map(lambda r: jnp.concatenate([jnp.zeros_like(r), r]), residuals)
+    else:
+      residuals = controlnet(batch_latents, timestep, constants.text_states,
+                             guidance_lib.both_halves(constants.control, guided),
+                             text_embeds=constants.text_embeds, time_ids=constants.time_ids)
   unet_input = batch_latents
   if models.inpainting_unet:
     unet_input = jnp.concatenate(
@@ -308,7 +299,7 @@ def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings:
                                  time_ids=constants.time_ids, control=residuals)
   if not guided:
     return prediction
-  return guidance_lib.classifier_free_guidance(prediction, guidance_scale)
+  return guidance_lib.classifier_free_guidance(prediction, guidance.guidance_scale)
 
 
 def _denoise(models: DiffusionModels, schedule: Schedule, constants: _LoopConstants,
@@ -325,8 +316,7 @@ def _denoise(models: DiffusionModels, schedule: Schedule, constants: _LoopConsta
   def denoise(carry, step):
     latents, solver_state = carry
     step_index, step_noise = step
-    prediction = _predict_noise(models, constants, settings, guidance.guidance_scale,
-                                guidance.controlnet_conditioning_scale[step_index],
+    prediction = _predict_noise(models, constants, settings, guidance, step_index,
                                 schedule.scale_model_input(latents, step_index),
                                 schedule.timesteps[step_index])
     latents, solver_state = schedule.step(solver_state, step_index, prediction, latents,

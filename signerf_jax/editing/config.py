@@ -53,7 +53,7 @@ TRAINING_RUNS = ("original", "finetune", "retrain")
 
 
 @dataclasses.dataclass(frozen=True)
-class EditConfig:
+class EditConfig(validation.CheckedFields):
   """The inputs of an edit.
 
   Attributes:
@@ -98,7 +98,7 @@ class EditConfig:
   strict_prompt: bool = False
 
   def __post_init__(self):
-    validation.check_fields(self)
+    super().__post_init__()
     if not self.prompt.strip():
       raise InputError("an edit needs a prompt", field="EditConfig.prompt")
 
@@ -108,7 +108,7 @@ class EditConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class SelectionConfig:
+class SelectionConfig(validation.CheckedFields):
   """Where to edit (paper, "Selection Modes").
 
   Coordinates are in the dataset's own world units (`frame="source"`, the default: e.g. the
@@ -158,7 +158,7 @@ class SelectionConfig:
   min_mask_pixels: NonNegativeInt = 1
 
   def __post_init__(self):
-    validation.check_fields(self)
+    super().__post_init__()
     if self.kind == "box" and (self.box_min is None or self.box_max is None):
       raise InputError("a box selection needs box_min and box_max (--box)", field="box")
     if self.kind == "proxy" and not self.proxy:
@@ -167,7 +167,7 @@ class SelectionConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class SheetConfig:
+class SheetConfig(validation.CheckedFields):
   """The reference sheet (paper, "Reference Sheet"; `editing.sheet`).
 
   Attributes:
@@ -196,12 +196,9 @@ class SheetConfig:
   crop_margin: NonNegativeFloat = 0.15
   crop_max_upscale: PositiveFloat = 2.0
 
-  def __post_init__(self):
-    validation.check_fields(self)
-
 
 @dataclasses.dataclass(frozen=True)
-class PreviewConfig:
+class PreviewConfig(validation.CheckedFields):
   """The candidate sheets `signerf preview` shows side by side.
 
   Attributes:
@@ -212,12 +209,9 @@ class PreviewConfig:
   seeds: tuple[NonNegativeInt, ...] = (0, 1, 2, 3)
   recipes: tuple[str, ...] = ()
 
-  def __post_init__(self):
-    validation.check_fields(self)
-
 
 @dataclasses.dataclass(frozen=True)
-class UpdateConfig:
+class UpdateConfig(validation.CheckedFields):
   """The image set update (`editing.update`).
 
   Attributes:
@@ -234,12 +228,9 @@ class UpdateConfig:
   views_per_device: PositiveInt = 4
   propagation: Propagation = "sheet"
 
-  def __post_init__(self):
-    validation.check_fields(self)
-
 
 @dataclasses.dataclass(frozen=True)
-class FinetuneConfig:
+class FinetuneConfig(validation.CheckedFields):
   """Losses of the NeRF update (`editing.finetune`); steps and learning rates are
   `finetune/TrainConfig` and `retrain/TrainConfig`.
 
@@ -261,12 +252,9 @@ class FinetuneConfig:
   edit_region: bool = True
   region_margin: NonNegativeFloat = 0.25
 
-  def __post_init__(self):
-    validation.check_fields(self)
-
 
 @dataclasses.dataclass(frozen=True)
-class EvaluationConfig:
+class EvaluationConfig(validation.CheckedFields):
   """What `signerf eval --edit` measures and writes.
 
   Attributes:
@@ -284,12 +272,9 @@ class EvaluationConfig:
   video_frames: NonNegativeInt = 48
   video_fps: PositiveInt = 12
 
-  def __post_init__(self):
-    validation.check_fields(self)
-
 
 @dataclasses.dataclass(frozen=True)
-class NerfConsistencySettings:
+class NerfConsistencySettings(validation.CheckedFields):
   """How the edited NeRF is measured (`editing.stages.nerf_consistency`).
 
   Attributes:
@@ -311,9 +296,6 @@ class NerfConsistencySettings:
   num_resamples: PositiveInt = 2000
   confidence: OpenUnitInterval = 0.95
   seed: NonNegativeInt = 0
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
   def bootstrap(self) -> dict[str, Any]:
     return {"num_resamples": self.num_resamples, "confidence": self.confidence,

@@ -32,7 +32,7 @@ PROXY = f"{PRIMITIVE_PREFIX}cow"
 
 
 @dataclasses.dataclass(frozen=True)
-class DemoSettings:
+class DemoSettings(validation.CheckedFields):
   """The demo's scene and edit (gin: `demo.<field>`).
 
   Attributes:
@@ -46,9 +46,6 @@ class DemoSettings:
   scene_seed: NonNegativeInt = 0
   cow_size_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 0.9
   heading_degrees: float = 30.0
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

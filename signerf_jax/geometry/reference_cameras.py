@@ -175,7 +175,7 @@ def _dataset_views_of_selection(dataset_cameras: camera_lib.Cameras, points: np.
 
 
 @dataclasses.dataclass(frozen=True)
-class ReferencePlacement:
+class ReferencePlacement(validation.CheckedFields):
   """How reference cameras are placed around the selection (gin: `ReferencePlacement.<field>`;
   see the module docstring).
 
@@ -195,7 +195,7 @@ class ReferencePlacement:
   min_arc_degrees: Annotated[float, Range(0, 360, low_inclusive=False)] = 30.0
 
   def __post_init__(self):
-    validation.check_fields(self)
+    super().__post_init__()
     if not self.min_fill <= self.max_fill:
       raise InputError(f"need 0 < min_fill <= max_fill < 1, got {self.min_fill}, "
                        f"{self.max_fill}", field="ReferencePlacement.min_fill")

@@ -46,7 +46,7 @@ MIN_MATCHES_FOR_FUNDAMENTAL = 8
 
 
 @dataclasses.dataclass(frozen=True)
-class ConsistencySettings:
+class ConsistencySettings(validation.CheckedFields):
   """How views are paired, matched and verified (gin: `consistency.<field>`).
 
   Attributes:
@@ -68,9 +68,6 @@ class ConsistencySettings:
   epipolar_threshold_pixels: PositiveFloat = 1.0
   mask_dilation_pixels: NonNegativeInt = 8
   max_keypoints: NonNegativeInt = 0
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -235,7 +235,7 @@ def _round_up(value: float, multiple: int) -> int:
 
 
 @dataclasses.dataclass(frozen=True)
-class CapacityRules:
+class CapacityRules(validation.CheckedFields):
   """The rules `derive_capacity` sizes a model by (gin: `CapacityRules.<field>`).
 
   Attributes:
@@ -274,7 +274,7 @@ class CapacityRules:
   overrides: Mapping[str, Any] | None = None
 
   def __post_init__(self):
-    validation.check_fields(self)
+    super().__post_init__()
     unknown = sorted(set(self.overrides or {}) - {field.name for field in
                                                   dataclasses.fields(Capacity)})
     if unknown:

@@ -29,22 +29,16 @@ from flax import struct
 
 from signerf_jax.camera import Rays
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import losses, occupancy, sampling, volume
+from signerf_jax.nerf import occupancy, ray_samples, sampling, volume
 from signerf_jax.nerf.capacity import Capacity, SceneInfo
 from signerf_jax.nerf.encoding import grid_layout
 from signerf_jax.nerf.fields import DensityField, RadianceField
 
-# A sample whose alpha is below this is skipped by the occupancy sampler (instant-NGP: 0.01).
-OCCUPANCY_MIN_ALPHA = 0.01
 OCCUPANCY_DECAY = 0.95
 # Optical depth of the untrained field along one scene extent (see
 # `RadianceField.initial_density`): ~instant-NGP's density 1 per unit cube. Lower values (0.1)
 # left surfaces soft for hundreds of steps (synthetic scene: 3.7 dB worse, 2.5x the depth error).
 INITIAL_OPTICAL_DEPTH = 1.0
-# Rendering evaluates the occupied samples of a chunk in pieces of this many: a piece is paid
-# for whole, and a chunk of 4096 rays holds ~8 occupied samples a ray (lego), so pieces of the
-# training budget (65536) were half empty (lego chunk: 77 ms, 44 ms with pieces of 8192).
-RENDER_PIECE_SAMPLES = 8192
 # Proposal networks only shape the sampling: a few levels suffice (nerfacto uses 5).
 PROPOSAL_LEVELS = 5
 # The params entry of per-camera pose corrections (`camera.refine_rays`).
@@ -180,24 +174,6 @@ def update_occupancy(model: NerfModel, variables: Variables, key, update_index) 
   return {**variables, "occupancy": grid}
 
 
-def _ray_range(model: NerfModel, rays: Rays):
-  """[near, far] per ray: the box for bounded scenes (misses get [far, far]); else the scene's."""
-  if model.capacity.sampler == "occupancy" or not model.capacity.contract:
-    t_near, t_far, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.bounds)
-    t_near = jnp.where(hit, jnp.maximum(t_near, model.scene.near), model.scene.far)
-    t_far = jnp.where(hit, t_far, model.scene.far)
-    return t_near, jnp.maximum(t_far, t_near)
-  shape = rays.shape
-  return jnp.full(shape, model.scene.near), jnp.full(shape, model.scene.far)
-
-
-def _finish_edges(model: NerfModel, edges):
-  """'last_sample' background: the last interval reaches infinity (the field is the background)."""
-  if model.capacity.background == "last_sample":
-    edges = edges.at[..., -1].set(sampling.MAX_DISTANCE)
-  return edges
-
-
 def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, training: bool,
                 background=None, surroundings: "RegionSurroundings | None" = None):
   """Renders rays [R] (flat batch).
@@ -221,8 +197,8 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
       "samples_evaluated" (radiance-field evaluations, all fields).
   """
   if model.edit_region is None:
-    samples, ray_complete, aux = _field_samples(model, variables, rays, key, training,
-                                                _ray_range(model, rays), finish=True)
+    samples, ray_complete, aux = ray_samples.field_samples(model, variables, rays, key, training,
+                                                ray_samples.ray_range(model, rays), finish=True)
     outputs = volume.volume_render(*samples, rays.cos_to_optical_axis,
                                    model.background if background is None else background)
     aux.update(edges=samples[2], weights=outputs["weights"])
@@ -247,7 +223,7 @@ def _region_interval(model: NerfModel, rays: Rays, t_near, t_far):
 def crosses_region(model: NerfModel, rays: Rays):
   """[R] bool: the rays whose modelled range crosses the edit region (the only rays an edit
   region's field changes)."""
-  return _region_interval(model, rays, *_ray_range(model.original, rays))[2]
+  return _region_interval(model, rays, *ray_samples.ray_range(model.original, rays))[2]
 
 
 def _region_stretch(model: NerfModel, rays: Rays, t_near, t_far, empty_at):
@@ -283,8 +259,8 @@ def region_surroundings(model: NerfModel, variables: Variables, rays: Rays
   """The original field's render around the edit region on `rays` [R] (no jitter): the same
   composite `_render_edit` makes, split at the region's stretch."""
   original = model.original
-  t_near, t_far = _ray_range(original, rays)
-  (densities, rgbs, edges), _, _ = _field_samples(
+  t_near, t_far = ray_samples.ray_range(original, rays)
+  (densities, rgbs, edges), _, _ = ray_samples.field_samples(
       original, variables["original"], rays, jax.random.PRNGKey(0), False, (t_near, t_far),
       finish=True)
   t_in, t_out = _region_stretch(model, rays, t_near, t_far, edges[..., -1])
@@ -302,7 +278,7 @@ def _render_inside(model: NerfModel, variables: Variables, rays: Rays, key, trai
   """The trained field on each ray's stretch inside the edit region, composited between the
   original's precomputed surroundings: colour = before + T_before (inside + T_inside (after +
   T_after background))."""
-  (densities, rgbs, edges), ray_complete, aux = _field_samples(
+  (densities, rgbs, edges), ray_complete, aux = ray_samples.field_samples(
       model, variables, rays, key, training, (surroundings.t_in, surroundings.t_out),
       finish=False)
   weights, inside_transmittance = volume.compute_weights(densities, edges)
@@ -325,12 +301,12 @@ def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, traini
   (`volume.merge_samples`)."""
   original = model.original
   original_key, edit_key = jax.random.split(key)
-  t_near, t_far = _ray_range(original, rays)
-  outer, outer_complete, original_aux = _field_samples(
+  t_near, t_far = ray_samples.ray_range(original, rays)
+  outer, outer_complete, original_aux = ray_samples.field_samples(
       original, jax.lax.stop_gradient(variables["original"]), rays, original_key, training,
       (t_near, t_far), finish=True)
   t_in, t_out = _region_stretch(model, rays, t_near, t_far, outer[2][..., -1])
-  inner, inner_complete, aux = _field_samples(model, variables, rays, edit_key, training,
+  inner, inner_complete, aux = ray_samples.field_samples(model, variables, rays, edit_key, training,
                                               (t_in, t_out), finish=False)
   aux.update(edges=inner[2], weights=volume.compute_weights(inner[0], inner[2])[0],
              samples_evaluated=aux["samples_evaluated"] + original_aux["samples_evaluated"])
@@ -338,108 +314,3 @@ def _render_edit(model: NerfModel, variables: Variables, rays: Rays, key, traini
                                  rays.cos_to_optical_axis,
                                  original.background if background is None else background)
   return outputs, outer_complete & inner_complete, aux
-
-
-def _field_samples(model: NerfModel, variables: Variables, rays: Rays, key, training: bool,
-                   ray_range, finish: bool):
-  """The field's samples along each ray's [near, far] = `ray_range` ([R] each).
-
-  Args:
-    finish: apply the background model to the last interval (`_finish_edges`): False for a
-      stretch of the ray that other samples continue.
-  Returns:
-    (densities [R, N], rgbs [R, N, 3], edges [R, N + 1]), ray_complete [R] bool, and
-    {"proposals", "samples_evaluated"} (see `render_rays`).
-  """
-  if model.capacity.sampler == "occupancy":
-    samples, ray_complete, aux = _occupancy_samples(model, variables, rays, key, training,
-                                                    ray_range, finish)
-  else:
-    samples, ray_complete, aux = _proposal_samples(model, variables, rays, key, training,
-                                                   ray_range, finish)
-  if training and model.capacity.near_gradient_scaling:
-    densities, rgbs, edges = samples
-    samples = (*losses.near_camera_gradient_scaling(densities, rgbs, edges,
-                                                     model.scene.camera_distance), edges)
-  return samples, ray_complete, aux
-
-
-def _appearance(model: NerfModel, rays: Rays, training: bool):
-  return rays.camera_indices if training else jnp.full(rays.shape, -1, jnp.int32)
-
-
-def _field_at(model, variables, mask, unit_points, directions, appearance, indices):
-  """The field at flat sample `indices` of `mask` [r, N] (index mask.size: padding).
-
-  Returns:
-    density [K] (0 at padding) and rgb [K, 3].
-  """
-  safe = jnp.minimum(indices, mask.size - 1)
-  ray_index = safe // mask.shape[1]
-  density, rgb = model.field.apply({"params": variables["params"]["field"]},
-                                   unit_points.reshape(-1, 3)[safe], directions[ray_index],
-                                   appearance[ray_index], variables.get("level_weights"))
-  return jnp.where(indices < mask.size, density, 0.0), rgb
-
-
-def _occupancy_samples(model, variables, rays, key, training, ray_range, finish):
-  capacity = model.capacity
-  t_near, t_far = ray_range
-  edges = sampling.marching_edges(key, t_near, t_far, model.march_step, capacity.march_steps,
-                                  training)
-  centres = sampling.midpoints(edges)
-  unit_points = model.to_unit_cube(rays.origins[:, None] + centres[..., None] *
-                                   rays.directions[:, None])  # [R, N, 3]
-  occupied_grid = occupancy.occupied_cells(variables["occupancy"], model.march_step,
-                                           OCCUPANCY_MIN_ALPHA)
-  mask = occupancy.lookup(occupied_grid, unit_points) & (edges[:, 1:] > edges[:, :-1])
-  num_rays, num_steps = mask.shape
-  inputs = (functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
-            _appearance(model, rays, training))
-  if training:
-    densities, rgbs, ray_complete, samples = occupancy.evaluate_in_groups(
-        *inputs, capacity.samples_per_batch, capacity.sample_groups)
-  else:
-    densities, rgbs, samples = occupancy.evaluate_every_occupied(*inputs, RENDER_PIECE_SAMPLES)
-    ray_complete = jnp.ones(rays.shape, bool)
-  if finish:
-    edges = _finish_edges(model, edges)
-  along_rays = (densities.reshape(num_rays, num_steps), rgbs.reshape(num_rays, num_steps, 3),
-                edges)
-  return along_rays, ray_complete, {"proposals": [], "samples_evaluated": samples}
-
-
-def _proposal_samples(model, variables, rays, key, training, ray_range, finish):
-  capacity = model.capacity
-  params = variables["params"]
-  t_near, t_far = ray_range
-  finished = (lambda edges: _finish_edges(model, edges)) if finish else (lambda edges: edges)
-  keys = jax.random.split(key, len(model.proposal_fields) + 1)
-  if capacity.contract or capacity.perspective_warp:
-    edges = sampling.spaced_edges(keys[0], t_near, t_far, capacity.proposal_samples[0], training,
-                                  model.spacing_scale)
-  else:
-    edges = sampling.stratified_edges(keys[0], t_near, t_far, capacity.proposal_samples[0],
-                                      training)
-
-  def points_of(edges):
-    centres = sampling.midpoints(edges)
-    return model.to_unit_cube(rays.origins[..., None, :] +
-                              centres[..., None] * rays.directions[..., None, :])
-
-  proposals = []
-  next_counts = list(capacity.proposal_samples[1:]) + [capacity.samples_per_ray]
-  for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
-    density = field.apply({"params": params[f"proposal_{index}"]}, points_of(edges))
-    proposal_edges = finished(edges)
-    weights, _ = volume.compute_weights(density, proposal_edges)
-    proposals.append((proposal_edges, weights))
-    edges = sampling.sample_pdf(keys[index + 1], edges, weights, count, training)
-  sample_shape = edges.shape[:-1] + (edges.shape[-1] - 1,)
-  directions = jnp.broadcast_to(rays.directions[..., None, :], sample_shape + (3,))
-  appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
-  density, rgb = model.field.apply({"params": params["field"]}, points_of(edges), directions,
-                                   appearance, variables.get("level_weights"))
-  samples = sum(capacity.proposal_samples) + capacity.samples_per_ray
-  return ((density, rgb, finished(edges)), jnp.ones(rays.shape, bool),
-          {"proposals": proposals, "samples_evaluated": jnp.int32(samples * rays.shape[0])})

@@ -41,7 +41,7 @@ from signerf_jax.validation import NonNegativeFloat, NonNegativeInt, PositiveFlo
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(validation.CheckedFields):
   """Optimisation settings (gin: `TrainConfig.<field>`, scoped per run in an edit).
 
   Attributes:
@@ -84,9 +84,6 @@ class TrainConfig:
   checkpoint_every_steps: PositiveInt = 1000
   checkpoint_every_seconds: PositiveFloat = 120.0
   seed: NonNegativeInt = 0
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
 
 @struct.dataclass

@@ -23,21 +23,16 @@ from viser import transforms
 
 from signerf_jax import configs, files
 from signerf_jax.data import frame as frame_lib
-from signerf_jax.data import poses as poses_lib
 from signerf_jax.editing import place
-from signerf_jax.editing import stages
-from signerf_jax.editing.commands import edit_settings, gin_value, parse_edit_config, run_command
+from signerf_jax.editing.commands import gin_value, parse_edit_config, run_command
 from signerf_jax.editing.commands.place import selection_bindings
-from signerf_jax.editing.config import EditConfig, SelectionConfig
 from signerf_jax.editing.generation import SheetRecipe
-from signerf_jax.editing.project import EditDirectory
 from signerf_jax.editing.stages import reference as reference_stage
 from signerf_jax.editing.stages import sheets as sheets_stage
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import reference_cameras
 from signerf_jax.geometry import selection as selection_lib
-from signerf_jax.nerf.commands import info
-from signerf_jax.viewer import progressive
+from signerf_jax.viewer import edit_session, progressive
 from signerf_jax.viewer.cameras import ViewPose, pose_of_camera
 
 # The sheet dropdown's entry for EditConfig.sheet = "" (the sheet of the edit's seed).
@@ -47,49 +42,6 @@ DATASET_CAMERA_COLOR = (60, 60, 60)
 REFERENCE_CAMERA_COLOR = (30, 110, 230)
 LINE_PIXELS = 1.5
 CONTROLNET_SCALE = "first_iteration/GenerationOptions.controlnet_conditioning_scale"
-# Bound only to build the edit's context when the edit has none yet (the panel shows the real
-# values, and the pipeline asks for them when they are missing).
-PLACEHOLDER_PROMPT = "EditConfig.prompt = 'not set'"
-
-
-def _edit_context(run_dir: Path, edit_dir: Path, default_proxy: str
-                  ) -> tuple[stages.EditContext, SelectionConfig | None, str]:
-  """(context of the edit, its saved selection or None, its saved prompt or "")."""
-  base = [f"EditConfig.original_run = {gin_value(str(run_dir.resolve()))}"]
-  parse_edit_config(edit_dir, (), base)
-  try:
-    selection = configs.build(SelectionConfig)
-  except InputError:
-    selection = None
-  try:
-    prompt = configs.build(EditConfig).prompt
-  except InputError:
-    prompt = ""
-  placeholders = [] if prompt else [PLACEHOLDER_PROMPT]
-  if selection is None:
-    placeholders += ["SelectionConfig.kind = 'proxy'",
-                     f"SelectionConfig.proxy = {gin_value(default_proxy)}",
-                     "SelectionConfig.ground_position = (0.0, 0.0, 0.0)"]
-  parse_edit_config(edit_dir, (), base + placeholders)
-  return stages.EditContext(EditDirectory(edit_dir), edit_settings(), progress=False), \
-      selection, prompt
-
-
-def default_selection(dataset, proxy: str) -> SelectionConfig:
-  """A proxy of `info.default_proxy_size` (a tenth of the cameras' distance from the centre
-  where the dataset records no frame) standing at the scene frame's centre, in the dataset's
-  own units: the start when the edit has no selection yet."""
-  world_from_source = np.asarray(dataset.world_from_source, np.float64)
-  centre = poses_lib.transform_points(np.linalg.inv(world_from_source), np.zeros(3))
-  size = info.default_proxy_size(dataset)
-  if not np.isfinite(size):
-    distance = np.median(np.linalg.norm(np.asarray(dataset.cameras.positions), axis=1))
-    size = round(float(0.1 * distance / poses_lib.similarity_scale(world_from_source)), 6)
-  return SelectionConfig(kind="proxy", proxy=proxy, frame="source",
-                         ground_position=tuple(round(float(value), 6) for value in centre),
-                         ground_size=size)
-
-
 def box_edges(lower, upper) -> np.ndarray:
   """[12, 2, 3] the edges of the axis-aligned box [lower, upper]."""
   corners = np.asarray(selection_lib.Box.create(lower, upper).corners)
@@ -105,10 +57,10 @@ class Viewer:
                heights: tuple[int, ...] = progressive.HEIGHTS):
     self.run_dir, self.edit_dir = Path(run_dir), Path(edit_dir)
     self.heights = heights
-    self.context, saved_selection, prompt = _edit_context(self.run_dir, self.edit_dir, proxy)
+    self.context, saved_selection, prompt = edit_session.load(self.run_dir, self.edit_dir, proxy)
     self.dataset = self.context.dataset
     self.nerf = self.context.nerf(0)
-    self.selection = saved_selection or default_selection(self.dataset, proxy)
+    self.selection = saved_selection or edit_session.default_selection(self.dataset, proxy)
     self._lock = threading.RLock()  # The selection and the scene nodes that show it.
     self._worker = concurrent.futures.ThreadPoolExecutor(1, "signerf-view-work")  # gin, stages
     self._renderers: dict[int, progressive.ProgressiveRenderer] = {}

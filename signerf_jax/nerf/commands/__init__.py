@@ -16,7 +16,7 @@ from signerf_jax.validation import PositiveFloat, PositiveInt, Range, Vector3, a
 
 
 @dataclasses.dataclass(frozen=True)
-class DataConfig:
+class DataConfig(validation.CheckedFields):
   """How a dataset is read: the options of `data.load_dataset` besides the split (gin:
   `DataConfig.<field>`; each has a command-line flag of the same name, which wins over gin). A
   run records them in model.json, so its held-out split loads in the same frame.
@@ -36,9 +36,6 @@ class DataConfig:
   scene_kind: SceneKind | None = None
   scene_center: Vector3 | None = None
   scene_radius: PositiveFloat | None = None
-
-  def __post_init__(self):
-    validation.check_fields(self)
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:

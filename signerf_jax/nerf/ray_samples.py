@@ -1,0 +1,150 @@
+"""Where a NeRF evaluates its field along rays: each ray's modelled range, and the two samplers.
+
+The occupancy sampler (bounded scenes) marches fixed steps and evaluates the field only where
+the occupancy grid says something is; the proposal sampler (unbounded and forward-facing
+scenes) resamples each ray from small density networks' weights (mip-NeRF 360's proposal
+sampling; `losses.interlevel_loss` trains them). Both return the samples `volume` composites.
+`model` is always a `nerf.model.NerfModel`.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from signerf_jax.camera import Rays
+from signerf_jax.nerf import losses, occupancy, sampling, volume
+
+# A sample whose alpha is below this is skipped by the occupancy sampler (instant-NGP: 0.01).
+OCCUPANCY_MIN_ALPHA = 0.01
+# Rendering evaluates the occupied samples of a chunk in pieces of this many: a piece is paid
+# for whole, and a chunk of 4096 rays holds ~8 occupied samples a ray (lego), so pieces of the
+# training budget (65536) were half empty (lego chunk: 77 ms, 44 ms with pieces of 8192).
+RENDER_PIECE_SAMPLES = 8192
+Variables = dict[str, Any]
+
+
+def ray_range(model, rays: Rays):
+  """[near, far] per ray: the box for bounded scenes (misses get [far, far]); else the scene's."""
+  if model.capacity.sampler == "occupancy" or not model.capacity.contract:
+    t_near, t_far, hit = sampling.intersect_aabb(rays.origins, rays.directions, model.bounds)
+    t_near = jnp.where(hit, jnp.maximum(t_near, model.scene.near), model.scene.far)
+    t_far = jnp.where(hit, t_far, model.scene.far)
+    return t_near, jnp.maximum(t_far, t_near)
+  shape = rays.shape
+  return jnp.full(shape, model.scene.near), jnp.full(shape, model.scene.far)
+
+
+def finish_edges(model, edges):
+  """'last_sample' background: the last interval reaches infinity (the field is the background)."""
+  if model.capacity.background == "last_sample":
+    edges = edges.at[..., -1].set(sampling.MAX_DISTANCE)
+  return edges
+
+
+def field_samples(model, variables: Variables, rays: Rays, key, training: bool, interval,
+                  finish: bool):
+  """The field's samples along each ray's (near [R], far [R]) = `interval` (e.g. `ray_range`).
+
+  Args:
+    finish: apply the background model to the last interval (`finish_edges`): False for a
+      stretch of the ray that other samples continue.
+  Returns:
+    (densities [R, N], rgbs [R, N, 3], edges [R, N + 1]), ray_complete [R] bool, and
+    {"proposals", "samples_evaluated"} (see `render_rays`).
+  """
+  if model.capacity.sampler == "occupancy":
+    samples, ray_complete, aux = _occupancy_samples(model, variables, rays, key, training,
+                                                    interval, finish)
+  else:
+    samples, ray_complete, aux = _proposal_samples(model, variables, rays, key, training,
+                                                   interval, finish)
+  if training and model.capacity.near_gradient_scaling:
+    densities, rgbs, edges = samples
+    samples = (*losses.near_camera_gradient_scaling(densities, rgbs, edges,
+                                                     model.scene.camera_distance), edges)
+  return samples, ray_complete, aux
+
+
+def _appearance(model, rays: Rays, training: bool):
+  return rays.camera_indices if training else jnp.full(rays.shape, -1, jnp.int32)
+
+
+def _field_at(model, variables, mask, unit_points, directions, appearance, indices):
+  """The field at flat sample `indices` of `mask` [r, N] (index mask.size: padding).
+
+  Returns:
+    density [K] (0 at padding) and rgb [K, 3].
+  """
+  safe = jnp.minimum(indices, mask.size - 1)
+  ray_index = safe // mask.shape[1]
+  density, rgb = model.field.apply({"params": variables["params"]["field"]},
+                                   unit_points.reshape(-1, 3)[safe], directions[ray_index],
+                                   appearance[ray_index], variables.get("level_weights"))
+  return jnp.where(indices < mask.size, density, 0.0), rgb
+
+
+def _occupancy_samples(model, variables, rays, key, training, interval, finish):
+  capacity = model.capacity
+  t_near, t_far = interval
+  edges = sampling.marching_edges(key, t_near, t_far, model.march_step, capacity.march_steps,
+                                  training)
+  centres = sampling.midpoints(edges)
+  unit_points = model.to_unit_cube(rays.origins[:, None] + centres[..., None] *
+                                   rays.directions[:, None])  # [R, N, 3]
+  occupied_grid = occupancy.occupied_cells(variables["occupancy"], model.march_step,
+                                           OCCUPANCY_MIN_ALPHA)
+  mask = occupancy.lookup(occupied_grid, unit_points) & (edges[:, 1:] > edges[:, :-1])
+  num_rays, num_steps = mask.shape
+  inputs = (functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
+            _appearance(model, rays, training))
+  if training:
+    densities, rgbs, ray_complete, samples = occupancy.evaluate_in_groups(
+        *inputs, capacity.samples_per_batch, capacity.sample_groups)
+  else:
+    densities, rgbs, samples = occupancy.evaluate_every_occupied(*inputs, RENDER_PIECE_SAMPLES)
+    ray_complete = jnp.ones(rays.shape, bool)
+  if finish:
+    edges = finish_edges(model, edges)
+  along_rays = (densities.reshape(num_rays, num_steps), rgbs.reshape(num_rays, num_steps, 3),
+                edges)
+  return along_rays, ray_complete, {"proposals": [], "samples_evaluated": samples}
+
+
+def _proposal_samples(model, variables, rays, key, training, interval, finish):
+  capacity = model.capacity
+  params = variables["params"]
+  t_near, t_far = interval
+  finished = (lambda edges: finish_edges(model, edges)) if finish else (lambda edges: edges)
+  keys = jax.random.split(key, len(model.proposal_fields) + 1)
+  if capacity.contract or capacity.perspective_warp:
+    edges = sampling.spaced_edges(keys[0], t_near, t_far, capacity.proposal_samples[0], training,
+                                  model.spacing_scale)
+  else:
+    edges = sampling.stratified_edges(keys[0], t_near, t_far, capacity.proposal_samples[0],
+                                      training)
+
+  def points_of(edges):
+    centres = sampling.midpoints(edges)
+    return model.to_unit_cube(rays.origins[..., None, :] +
+                              centres[..., None] * rays.directions[..., None, :])
+
+  proposals = []
+  next_counts = list(capacity.proposal_samples[1:]) + [capacity.samples_per_ray]
+  for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
+    density = field.apply({"params": params[f"proposal_{index}"]}, points_of(edges))
+    proposal_edges = finished(edges)
+    weights, _ = volume.compute_weights(density, proposal_edges)
+    proposals.append((proposal_edges, weights))
+    edges = sampling.sample_pdf(keys[index + 1], edges, weights, count, training)
+  sample_shape = edges.shape[:-1] + (edges.shape[-1] - 1,)
+  directions = jnp.broadcast_to(rays.directions[..., None, :], sample_shape + (3,))
+  appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
+  density, rgb = model.field.apply({"params": params["field"]}, points_of(edges), directions,
+                                   appearance, variables.get("level_weights"))
+  samples = sum(capacity.proposal_samples) + capacity.samples_per_ray
+  return ((density, rgb, finished(edges)), jnp.ones(rays.shape, bool),
+          {"proposals": proposals, "samples_evaluated": jnp.int32(samples * rays.shape[0])})
