@@ -144,6 +144,7 @@ def disassemble(sheet, layout: SheetLayout):
   return jnp.delete(cells, layout.slot_index, axis=0, assume_unique_indices=True), slot
 
 
+@functools.partial(jax.jit, static_argnames=("layout",))
 def reference_sheet_inputs(rgb, control, mask, layout: SheetLayout):
   """The three sheets for reference sheet generation, with the slot left empty.
 

@@ -16,6 +16,9 @@ cameras, and one metric range would clip them to all-white or all-black. Defined
 3D sphere, the selection spans the same normalised band in every tile and every slot view: the
 tiles of a sheet and each view put in its slot are comparable, which is what the sheet needs.
 Passing scalar `near` / `far` instead gives one shared metric range when that is wanted.
+
+Both functions are jitted: called on concrete arrays, as the editing stages do, each is one
+compiled program rather than a score of small operations, each compiled on its first call.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import jax.numpy as jnp
 from signerf_jax import camera as camera_lib
 
 
+@jax.jit
 def selection_depth_range(cameras: camera_lib.Cameras, center, radius, padding: float = 0.25,
                           min_near_fraction: float = 0.05):
   """Per-camera z-range of the selection's bounding sphere, padded.
@@ -46,6 +50,7 @@ def selection_depth_range(cameras: camera_lib.Cameras, center, radius, padding: 
   return near, far
 
 
+@jax.jit
 def normalize_control_depth(z_depth, near, far) -> jax.Array:
   """Normalised inverse depth in [0, 1] (near = 1, far = 0).
 

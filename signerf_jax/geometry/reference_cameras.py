@@ -39,6 +39,20 @@ _project = jax.jit(camera_lib.project)
 _look_at = jax.jit(camera_lib.look_at)
 
 
+def _project_points(cameras: camera_lib.Cameras, points) -> tuple[np.ndarray, np.ndarray]:
+  """`camera.project` of [K, 3] points: pixels [N, K, 2] and z-depths [N, K] (numpy).
+
+  The points are padded (last one repeated) to the next power of two, so that a selection's
+  points and those plus its centre share one compilation.
+  """
+  points = np.asarray(points, np.float32).reshape(-1, 3)
+  count = len(points)
+  padded = np.concatenate([points, np.repeat(points[-1:], (1 << (count - 1).bit_length()) - count,
+                                             axis=0)])
+  pixels, depth = _project(cameras, padded)
+  return np.asarray(pixels)[:, :count], np.asarray(depth)[:, :count]
+
+
 @dataclasses.dataclass(frozen=True)
 class ReferenceCameraReport:
   """How the reference cameras relate to the selection and the dataset cameras.
@@ -106,8 +120,8 @@ def projected_fill(cameras: camera_lib.Cameras, points) -> np.ndarray:
 
   Points behind a camera are ignored; a camera seeing no point in front of it gets 0.
   """
-  pixels, depth = _project(cameras, np.asarray(points, np.float32))
-  pixels, depth = np.asarray(pixels, np.float64), np.asarray(depth, np.float64)
+  pixels, depth = _project_points(cameras, points)
+  pixels, depth = pixels.astype(np.float64), depth.astype(np.float64)
   in_front = depth > 0
   limits = np.array([cameras.width, cameras.height], np.float64)
   low = np.where(in_front[..., None], pixels, np.inf).min(axis=1)
@@ -119,8 +133,7 @@ def projected_fill(cameras: camera_lib.Cameras, points) -> np.ndarray:
 
 def cameras_seeing(cameras: camera_lib.Cameras, points) -> np.ndarray:
   """[N] bool: some of the [K, 3] points projects inside the image, in front of the camera."""
-  pixels, depth = _project(cameras, np.asarray(points, np.float32))
-  pixels, depth = np.asarray(pixels), np.asarray(depth)
+  pixels, depth = _project_points(cameras, points)
   inside = ((pixels[..., 0] >= 0) & (pixels[..., 0] <= cameras.width) & (pixels[..., 1] >= 0)
             & (pixels[..., 1] <= cameras.height) & (depth > 0))
   return inside.any(axis=1)
