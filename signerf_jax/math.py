@@ -15,41 +15,36 @@ EPSILON = float(jnp.finfo(jnp.float32).eps)
 MAX_EXP_INPUT = 88.0
 
 
-@jax.custom_jvp
+def with_derivative(derivative):
+  """Decorator: the elementwise function it wraps gets the derivative `derivative(x)` (a
+  `jax.custom_jvp`, tangent = derivative(x) * x_dot), written from a guarded input so that it
+  stays finite where the plain function's is not."""
+
+  def decorate(function):
+    guarded = jax.custom_jvp(function)
+    guarded.defjvp(lambda primals, tangents: (guarded(primals[0]),
+                                               derivative(primals[0]) * tangents[0]))
+    return guarded
+
+  return decorate
+
+
+@with_derivative(lambda x: jnp.exp(jnp.minimum(x, MAX_EXP_INPUT)))
 def safe_exp(x):
   """exp(min(x, 88)): finite for any finite input, with a finite derivative."""
   return jnp.exp(jnp.minimum(x, MAX_EXP_INPUT))
 
 
-@safe_exp.defjvp
-def _safe_exp_jvp(primals, tangents):
-  (x,), (x_dot,) = primals, tangents
-  y = safe_exp(x)
-  return y, y * x_dot
-
-
-@jax.custom_jvp
+@with_derivative(lambda x: 1.0 / jnp.maximum(x, TINY))
 def safe_log(x):
   """log(max(x, tiny)): finite for x <= 0, derivative 1 / max(x, tiny)."""
   return jnp.log(jnp.maximum(x, TINY))
 
 
-@safe_log.defjvp
-def _safe_log_jvp(primals, tangents):
-  (x,), (x_dot,) = primals, tangents
-  return safe_log(x), x_dot / jnp.maximum(x, TINY)
-
-
-@jax.custom_jvp
+@with_derivative(lambda x: 0.5 / jnp.sqrt(jnp.maximum(x, EPSILON)))
 def safe_sqrt(x):
   """sqrt(max(x, 0)) whose derivative at 0 is large but finite, not inf."""
   return jnp.sqrt(jnp.maximum(x, 0.0))
-
-
-@safe_sqrt.defjvp
-def _safe_sqrt_jvp(primals, tangents):
-  (x,), (x_dot,) = primals, tangents
-  return safe_sqrt(x), 0.5 * x_dot / jnp.sqrt(jnp.maximum(x, EPSILON))
 
 
 def safe_div(numerator, denominator, eps: float = 1e-10):

@@ -15,7 +15,8 @@ import pytest
 # commands they start) must neither read a machine's cache nor write to it. Many tests compile
 # the same programs again (a NeRF step, a tiny pipeline, in-process and in the commands they
 # start), so they share a cache that lives as long as the session (a tenth of the suite's
-# time); JAX_ENABLE_COMPILATION_CACHE=false turns it off.
+# time; under pytest-xdist each worker has its own); JAX_ENABLE_COMPILATION_CACHE=false turns
+# it off.
 SESSION_COMPILATION_CACHE = tempfile.mkdtemp(prefix="signerf_jax_tests_xla_")
 os.environ["JAX_COMPILATION_CACHE_DIR"] = SESSION_COMPILATION_CACHE
 os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "true")

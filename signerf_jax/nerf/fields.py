@@ -12,6 +12,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from signerf_jax.math import with_derivative
 from signerf_jax.nerf.encoding import GridLayout, HashGridEncoding, spherical_harmonics
 
 # exp's gradient is clamped at this input (instant-NGP's "trunc_exp"): one huge activation must not
@@ -21,16 +22,10 @@ _EXP_GRADIENT_CLAMP = 15.0
 _EXP_VALUE_CLAMP = 80.0
 
 
-@jax.custom_jvp
+@with_derivative(lambda x: jnp.exp(jnp.minimum(x, _EXP_GRADIENT_CLAMP)))
 def truncated_exp(x):
   """exp(x) (capped at exp(80)) with its derivative evaluated at min(x, 15)."""
   return jnp.exp(jnp.minimum(x, _EXP_VALUE_CLAMP))
-
-
-@truncated_exp.defjvp
-def _truncated_exp_jvp(primals, tangents):
-  (x,), (x_dot,) = primals, tangents
-  return truncated_exp(x), x_dot * jnp.exp(jnp.minimum(x, _EXP_GRADIENT_CLAMP))
 
 
 class MLP(nn.Module):
