@@ -107,18 +107,20 @@ class Generator:
 def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str,
                    negative_prompt: str, options: pipeline_lib.GenerationOptions,
                    views_per_device: int, attention: AttentionOptions = AttentionOptions(),
-                   mesh: Mesh | None = None) -> Generator:
+                   mesh: Mesh | None = None, precision: str = "float32") -> Generator:
   """Loads a diffusers ControlNet inpainting pipeline (and an optional separate ControlNet);
-  `attention` says how its models evaluate attention."""
+  `attention` says how its models evaluate attention, `precision` ("float32" or "bfloat16") the
+  dtype its weights are stored and its matmuls and convolutions computed in."""
   if not Path(model).is_dir():
     raise InputError("diffusion model directory not found (pass --model, a diffusers "
                      "inpainting pipeline)", model, "model")
   if views_per_device < 1:
     raise InputError(f"must be at least 1, got {views_per_device}",
                      field="UpdateConfig.views_per_device")
+  dtype = jnp.dtype(precision)
   pipeline = pipeline_lib.load_pipeline(model, controlnet=controlnet or None,
                                         scheduler_kind=scheduler_kind or None,
-                                        attention=attention)
+                                        dtype=dtype, compute_dtype=dtype, attention=attention)
   if pipeline.models.controlnet is None:
     raise InputError("the pipeline has no ControlNet: SIGNeRF conditions on depth (pass "
                      "--controlnet)", model, "controlnet")

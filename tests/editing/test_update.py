@@ -6,6 +6,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -191,3 +193,20 @@ def test_the_update_sharded_over_two_four_and_eight_devices_equals_the_one_devic
     assert int(sharded[f"shards_{count}"]) == count
     np.testing.assert_allclose(sharded[f"edited_{count}"], edited, rtol=0, atol=1e-5,
                                err_msg=f"{count} devices")
+
+
+def test_a_bfloat16_generator_stores_bfloat16_weights_and_edits_views_alike(generator,
+                                                                            random_model):
+  """EditConfig.diffusion_precision = "bfloat16": the weights are stored in bfloat16 and the
+  update's images stay within bfloat16's rounding of the float32 ones."""
+  reduced = generation.load_generator(str(random_model), "", "", "a red cow", "", TINY_OPTIONS,
+                                      views_per_device=4, precision="bfloat16")
+  kernels = lambda g: [leaf.dtype for leaf in jax.tree.leaves(g.pipeline.models.unet_params)]
+  assert set(kernels(reduced)) == {np.dtype(jnp.bfloat16)}
+  assert set(kernels(generator)) == {np.dtype(np.float32)}
+  views = make_views(count=2)
+  edit = lambda g: update.batch_editor(g, LAYOUT, "sheet", *make_sheet())(
+      take(views, [0, 1]), np.stack([generation.seed_key(seed) for seed in (0, 1)]))[0]
+  full, half = np.asarray(edit(generator)), np.asarray(edit(reduced))
+  assert np.all(np.isfinite(half))
+  assert 0 < np.mean(np.abs(full - half)) < 0.02

@@ -138,7 +138,8 @@ class EditContext:
     return generation.load_generator(config.model, config.controlnet, config.scheduler_kind,
                                      config.prompt, config.negative_prompt,
                                      settings.generation_options(1),
-                                     settings.update.views_per_device, settings.attention)
+                                     settings.update.views_per_device, settings.attention,
+                                     precision=config.diffusion_precision)
 
   def generator(self, iteration: int) -> generation.Generator:
     """The diffusion model with the prompt and the iteration's options (loaded once)."""
@@ -150,7 +151,7 @@ class EditContext:
     config = self.settings.edit
     return {"prompt": config.prompt, "negative_prompt": config.negative_prompt,
             "model": config.model, "controlnet": config.controlnet,
-            "scheduler_kind": config.scheduler_kind,
+            "scheduler_kind": config.scheduler_kind, "precision": config.diffusion_precision,
             "options": as_json(self.settings.generation_options(iteration))}
 
   # What the views stage wrote ----------------------------------------------------------------
