@@ -35,6 +35,7 @@ import dataclasses
 import os
 import platform
 import re
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -50,10 +51,10 @@ from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
+
 RESULTS = Path(__file__).resolve().parent / "results"
-# bench_diffusion's SD1.5-shaped UNet.
-SD15_UNET = dict(block_out_channels=(320, 640, 1280, 1280), cross_attention_dim=768,
-                 attention_head_dim=8, layers_per_block=2, sample_size=64)
 # One HLO instruction line: its name, opcode and metadata's op_name.
 INSTRUCTION = re.compile(r'^\s*(?:ROOT\s+)?%?([^\s=]+) = [^=]*?\s([a-z][a-z\-]*)\(.*?'
                          r'op_name="([^"]*)"')

@@ -201,9 +201,9 @@ def test_a_bfloat16_generator_stores_bfloat16_weights_and_edits_views_alike(gene
   update's images stay within bfloat16's rounding of the float32 ones."""
   reduced = generation.load_generator(str(random_model), "", "", "a red cow", "", TINY_OPTIONS,
                                       views_per_device=4, precision="bfloat16")
-  kernels = lambda g: [leaf.dtype for leaf in jax.tree.leaves(g.pipeline.models.unet_params)]
-  assert set(kernels(reduced)) == {np.dtype(jnp.bfloat16)}
-  assert set(kernels(generator)) == {np.dtype(np.float32)}
+  dtypes = lambda g: {leaf.dtype for leaf in jax.tree.leaves(g.pipeline.models.unet_params)}
+  assert dtypes(reduced) == {np.dtype(jnp.bfloat16)}
+  assert dtypes(generator) == {np.dtype(np.float32)}
   views = make_views(count=2)
   edit = lambda g: update.batch_editor(g, LAYOUT, "sheet", *make_sheet())(
       take(views, [0, 1]), np.stack([generation.seed_key(seed) for seed in (0, 1)]))[0]
