@@ -2,14 +2,16 @@
 the held-out PSNR of what was rendered, so that speed is reported with its error.
 
   python experiments/bench_nerf_throughput.py --run lego=RUN_DIR --run stitch_200=RUN_DIR \
-      [--views 4] [--train_steps 40] [--name bench_nerf_throughput]
+      [--views 4] [--train_steps 40] [--render_sample_fraction F ...] \
+      [--name bench_nerf_throughput]
 
 For each run (a `signerf train` directory):
   * rendering: its first `views` held-out views with the renderer the viewer, the views stage and
     the evaluation use (`nerf.render`, chunks of 4096 rays), timed the second time (the first
     compiles); rays/s, field samples per ray and per second (every network evaluation: the
     proposal networks' too, and with the occupancy sampler only the occupied samples), and the
-    views' PSNR;
+    views' PSNR; with `--render_sample_fraction`, also at each of those fractions of the
+    proposal sampler's samples (`Capacity.render_sample_fraction`), side by side;
   * training: `train_steps` steps from its checkpoint on its training views, after
     `warmup_steps` untimed ones (compilation); rays/s and field samples/s.
 Writes experiments/results/<name>.json with the machine and its load.
@@ -91,15 +93,24 @@ def measure_training(run, training, warmup_steps: int, steps: int) -> dict[str, 
           "field_samples_per_second": (trainer.samples_trained - samples_before) / seconds}
 
 
-def measure_run(run_dir: Path, views: int, warmup_steps: int, steps: int) -> dict[str, Any]:
+def measure_run(run_dir: Path, views: int, warmup_steps: int, steps: int,
+                render_sample_fractions: tuple[float, ...] = ()) -> dict[str, Any]:
   run = evaluate.load_run(run_dir)
   held_out = load_recorded_dataset(run.description, "eval")
   training = load_recorded_dataset(run.description, "train")
   capacity = run.model.capacity
+  at_fractions = {}
+  for fraction in render_sample_fractions:
+    model = dataclasses.replace(run.model, capacity=dataclasses.replace(
+        capacity, render_sample_fraction=fraction))
+    at_fractions[f"{fraction:g}"] = measure_rendering(dataclasses.replace(run, model=model),
+                                                      held_out, views)
   return {"run": str(run_dir), "scene_kind": run.model.scene.kind, "sampler": capacity.sampler,
           "proposal_samples": list(capacity.proposal_samples),
-          "samples_per_ray": capacity.samples_per_ray, "step_trained": run.step,
+          "samples_per_ray": capacity.samples_per_ray,
+          "render_sample_fraction": capacity.render_sample_fraction, "step_trained": run.step,
           "rendering": measure_rendering(run, held_out, views),
+          "rendering_at_sample_fraction": at_fractions,
           "training": measure_training(run, training, warmup_steps, steps)}
 
 
@@ -110,6 +121,8 @@ def main() -> None:
   parser.add_argument("--views", type=int, default=4, help="held-out views rendered per run")
   parser.add_argument("--warmup_steps", type=int, default=5)
   parser.add_argument("--train_steps", type=int, default=40)
+  parser.add_argument("--render_sample_fraction", type=float, action="append", default=[],
+                      help="also render at this Capacity.render_sample_fraction (repeatable)")
   parser.add_argument("--name", default="bench_nerf_throughput", help="results/<name>.json")
   args = parser.parse_args()
   result: dict[str, Any] = {
@@ -119,7 +132,7 @@ def main() -> None:
   for entry in args.run:
     name, _, run_dir = entry.partition("=")
     result["runs"][name] = measure_run(Path(run_dir), args.views, args.warmup_steps,
-                                       args.train_steps)
+                                       args.train_steps, tuple(args.render_sample_fraction))
     print(name, result["runs"][name], flush=True)
   result["load_average_at_end"] = os.getloadavg()
   files.write_json(RESULTS / f"{args.name}.json", result)

@@ -120,12 +120,12 @@ def _proposal_samples(model, variables, rays, key, training, interval, finish):
   t_near, t_far = interval
   finished = (lambda edges: finish_edges(model, edges)) if finish else (lambda edges: edges)
   keys = jax.random.split(key, len(model.proposal_fields) + 1)
+  proposal_counts, field_count = capacity.sample_counts(training)
   if capacity.contract or capacity.perspective_warp:
-    edges = sampling.spaced_edges(keys[0], t_near, t_far, capacity.proposal_samples[0], training,
+    edges = sampling.spaced_edges(keys[0], t_near, t_far, proposal_counts[0], training,
                                   model.spacing_scale)
   else:
-    edges = sampling.stratified_edges(keys[0], t_near, t_far, capacity.proposal_samples[0],
-                                      training)
+    edges = sampling.stratified_edges(keys[0], t_near, t_far, proposal_counts[0], training)
 
   def points_of(edges):
     centres = sampling.midpoints(edges)
@@ -133,7 +133,7 @@ def _proposal_samples(model, variables, rays, key, training, interval, finish):
                               centres[..., None] * rays.directions[..., None, :])
 
   proposals = []
-  next_counts = list(capacity.proposal_samples[1:]) + [capacity.samples_per_ray]
+  next_counts = list(proposal_counts[1:]) + [field_count]
   for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
     density = field.apply({"params": params[f"proposal_{index}"]}, points_of(edges))
     proposal_edges = finished(edges)
@@ -145,6 +145,6 @@ def _proposal_samples(model, variables, rays, key, training, interval, finish):
   appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
   density, rgb = model.field.apply({"params": params["field"]}, points_of(edges), directions,
                                    appearance, variables.get("level_weights"))
-  samples = sum(capacity.proposal_samples) + capacity.samples_per_ray
+  samples = sum(proposal_counts) + field_count
   return ((density, rgb, finished(edges)), jnp.ones(rays.shape, bool),
           {"proposals": proposals, "samples_evaluated": jnp.int32(samples * rays.shape[0])})

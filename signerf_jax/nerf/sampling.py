@@ -172,7 +172,7 @@ def contract(points):
 def perspective(offsets):
   """NDC's warp of forward-facing scenes: (x / depth, y / depth, 1 / depth) with depth along -z.
   A grid over these coordinates spends the same cells on what a pixel covers at every depth, as
-  the images do (`capacity.PerspectiveWarp`).
+  the images do (`perspective_warp.PerspectiveWarp`).
 
   Args:
     offsets: [..., 3] points in a camera's frame (it looks down -z).

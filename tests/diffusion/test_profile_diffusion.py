@@ -2,7 +2,6 @@
 names, and a profiled forward's breakdown covers what ran."""
 
 import importlib.util
-import sys
 from pathlib import Path
 
 import flax.linen as nn

@@ -7,6 +7,7 @@ import pytest
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import capacity
 from signerf_jax.nerf.encoding import grid_layout
+from signerf_jax.nerf.perspective_warp import PerspectiveWarp
 
 LEGO_100 = capacity.SceneInfo(bounds=((-1, -1, -1), (1, 1, 1)), kind="bounded", near=1.0,
                               far=4.4, background_color=(1, 1, 1), num_images=100, width=100,
@@ -38,9 +39,9 @@ def test_table_never_exceeds_the_finest_levels_vertices_and_grows_with_resolutio
 # A forward-facing scene seen through image-plane ranges of 1.6 x 1.2 (tangent units).
 FORWARD_FACING = dataclasses.replace(
     LEGO_100, kind="forward_facing", background_color=None,
-    perspective=capacity.PerspectiveWarp((0.0, 0.0, 1.0), ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
-                                                           (0.0, 0.0, 1.0)),
-                                         (-0.8, -0.6, 0.5), (0.8, 0.6, 4.5)))
+    perspective=PerspectiveWarp((0.0, 0.0, 1.0), ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
+                                                  (0.0, 0.0, 1.0)),
+                                (-0.8, -0.6, 0.5), (0.8, 0.6, 4.5)))
 
 
 @pytest.mark.parametrize("kind, contract", [("forward_facing", False), ("unbounded", True)])
@@ -66,6 +67,8 @@ def test_overrides_pin_fields_and_bad_footprint_is_an_input_error():
 @pytest.mark.parametrize("fields, field", [
     ({"overrides": {"finest_resolutoin": 64}}, "CapacityRules.overrides"),
     ({"level_growth": 1.0}, "CapacityRules.level_growth"),
+    ({"render_sample_fraction": 0.0}, "CapacityRules.render_sample_fraction"),
+    ({"render_sample_fraction": 1.5}, "CapacityRules.render_sample_fraction"),
 ])
 def test_bad_rules_are_input_errors_naming_the_field(fields, field):
   with pytest.raises(InputError) as error:
@@ -80,6 +83,23 @@ def test_json_round_trip():
       LEGO_100, bounds=((-1.0,) * 3, (1.0,) * 3), background_color=(1, 1, 1))
   as_json = json.loads(json.dumps(dataclasses.asdict(FORWARD_FACING)))
   assert capacity.SceneInfo.from_json(as_json).perspective == FORWARD_FACING.perspective
+
+
+def test_rendering_takes_its_fraction_of_the_proposal_samples_and_training_all():
+  derived = dataclasses.replace(capacity.derive_capacity(FORWARD_FACING),
+                                proposal_samples=(48, 24), samples_per_ray=24)
+  for fraction, rendering in [(1.0, ((48, 24), 24)), (2 / 3, ((32, 16), 16)),
+                              (0.5, ((24, 16), 16)), (0.01, ((8, 8), 8))]:
+    fractional = dataclasses.replace(derived, render_sample_fraction=fraction)
+    assert fractional.sample_counts(training=True) == ((48, 24), 24)
+    assert fractional.sample_counts(training=False) == rendering
+  assert capacity.derive_capacity(FORWARD_FACING).render_sample_fraction == pytest.approx(2 / 3)
+  assert "(48 > 24 > 24 samples per ray; 32 > 16 > 16 when rendering)" in capacity.describe(
+      dataclasses.replace(derived, render_sample_fraction=2 / 3))
+  # A model saved before the fraction existed renders with every sample.
+  older = {name: value for name, value in dataclasses.asdict(derived).items()
+           if name != "render_sample_fraction"}
+  assert capacity.Capacity.from_json(older).render_sample_fraction == 1.0
 
 
 @pytest.mark.shared_data
@@ -132,7 +152,7 @@ def test_perspective_warp_spans_the_cameras_field_of_view_in_any_orientation(yaw
   position = np.array([0.3, -0.2, 0.5])
   pose = np.concatenate([rotation, position[:, None]], axis=1)[None]
   cameras = camera_lib.Cameras.create(pose, 50.0, width=100, height=60)
-  warp = capacity.PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)
+  warp = PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)
   np.testing.assert_allclose(warp.centre, position, atol=1e-6)
   np.testing.assert_allclose(warp.low[:2], (-1.0, -0.6), rtol=1e-5)  # half sizes / focal
   np.testing.assert_allclose(warp.high[:2], (1.0, 0.6), rtol=1e-5)
@@ -146,7 +166,7 @@ def test_perspective_warp_spans_the_cameras_field_of_view_in_any_orientation(yaw
   coordinates = np.asarray(warp(seen @ rotation.T + position))
   assert np.all((coordinates >= 0) & (coordinates <= 1)), coordinates
   np.testing.assert_allclose(coordinates[:2, :2].mean(), 0.5, atol=0.1)
-  assert capacity.PerspectiveWarp.from_json(json.loads(json.dumps(
+  assert PerspectiveWarp.from_json(json.loads(json.dumps(
       dataclasses.asdict(warp)))) == warp
 
 
@@ -158,4 +178,4 @@ def test_perspective_warp_of_cameras_looking_all_around_is_an_input_error():
   cameras = camera_lib.Cameras.create(np.asarray(camera_lib.look_at(eyes, np.zeros(3, np.float32))),
                                       50.0, width=100, height=60)
   with pytest.raises(InputError, match="not a forward-facing capture"):
-    capacity.PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)
+    PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)

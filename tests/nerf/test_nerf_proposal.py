@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from small_nerf import SMALL_CONFIG, count_compilations
 
+from signerf_jax import camera
 from signerf_jax.nerf import capacity, evaluate, training_run, model as nerf_model
 
 
@@ -32,6 +33,19 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
   after, renders = evaluate.evaluate(model, trainer.state.variables, dataset.subset([0]))
   assert after["psnr"] > before["psnr"] + 3, (before, after)
   assert all(np.all(np.isfinite(value)) for value in renders.values())
+  # Rendering with half the samples evaluates half and still finds the surfaces.
+  halved = dataclasses.replace(model, capacity=dataclasses.replace(
+      model.capacity, proposal_samples=(32, 16), samples_per_ray=16, render_sample_fraction=0.5))
+  rays = jax.tree.map(lambda array: array[:, :4].reshape((-1,) + array.shape[2:]),
+                      camera.image_rays(dataset.cameras, 0))
+  for training, per_ray in [(False, 16 + 8 + 8), (True, 32 + 16 + 16)]:
+    _, aux = nerf_model.render_rays(halved, trainer.state.variables, rays, jax.random.key(0),
+                                    training=training)
+    assert int(aux["samples_evaluated"]) == per_ray * rays.shape[0]
+  halved_metrics, _ = evaluate.evaluate(halved, trainer.state.variables, dataset.subset([0]))
+  full_metrics, _ = evaluate.evaluate(dataclasses.replace(halved, capacity=dataclasses.replace(
+      halved.capacity, render_sample_fraction=1.0)), trainer.state.variables, dataset.subset([0]))
+  assert halved_metrics["psnr"] > full_metrics["psnr"] - 1.0, (halved_metrics, full_metrics)
   # The interlevel loss trains every proposal network.
   for name in ("proposal_0", "proposal_1"):
     moved = [not np.array_equal(a, b) for a, b in zip(
