@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import gin
-import jax
 import numpy as np
 
 from signerf_jax import configs, files
@@ -35,7 +34,8 @@ from signerf_jax.data import load_dataset
 from signerf_jax.editing import figures
 from signerf_jax.nerf import capacity, evaluate, render, train, training_run
 
-import plotting  # experiments/plotting.py (this script's directory is on sys.path)
+import machine  # experiments/machine.py and plotting.py (this script's directory is on sys.path)
+import plotting
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
@@ -146,10 +146,8 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
   seconds = dict(seconds or {})
   config, rules = configs.build(train.TrainConfig), configs.build(capacity.CapacityRules)
   result: dict[str, Any] = {
-      "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                  "cpu_count": os.cpu_count(), "jax": jax.__version__,
-                  "shared_with_other_jobs": machine_shared,
-                  "load_average_at_start": os.getloadavg()},
+      "machine": machine.record(processor=platform.processor(),
+                                shared_with_other_jobs=machine_shared),
       "train_config": dataclasses.asdict(config),
       "scenes": {},
   }

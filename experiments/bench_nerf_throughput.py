@@ -23,7 +23,6 @@ import argparse
 import dataclasses
 import functools
 import os
-import platform
 import time
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,8 @@ from signerf_jax.metrics import image as image_metrics
 from signerf_jax.nerf import evaluate, render, train, training_run
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.commands import load_recorded_dataset
+
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CHUNK_SIZE = 4096
@@ -126,8 +127,7 @@ def main() -> None:
   parser.add_argument("--name", default="bench_nerf_throughput", help="results/<name>.json")
   args = parser.parse_args()
   result: dict[str, Any] = {
-      "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                  "jax": jax.__version__, "load_average_at_start": os.getloadavg()},
+      "machine": machine.record(),
       "chunk_size": CHUNK_SIZE, "runs": {}}
   for entry in args.run:
     name, _, run_dir = entry.partition("=")

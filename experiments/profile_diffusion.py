@@ -33,7 +33,6 @@ import argparse
 import collections
 import dataclasses
 import os
-import platform
 import re
 import sys
 import tempfile
@@ -52,6 +51,7 @@ from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -169,8 +169,7 @@ def main() -> None:
   parser.add_argument("--name", default="profile_diffusion", help="results/<name>.json")
   args = parser.parse_args()
   result: dict[str, Any] = {
-      "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                  "jax": jax.__version__, "load_average_at_start": os.getloadavg()},
+      "machine": machine.record(),
       "repeats": args.repeats, "models": {}}
   unet = UNet2DCondition(model_configs.UNetConfig.from_dict(SD15_UNET))
   controlnet = ControlNet(model_configs.ControlNetConfig.from_dict(

@@ -35,7 +35,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import socket
 import subprocess
 import sys
@@ -64,7 +63,8 @@ from signerf_jax.geometry import control_depth
 from signerf_jax.nerf import capacity as capacity_lib
 from signerf_jax.nerf import train, training_run
 
-import plotting  # experiments/plotting.py (this script's directory is on sys.path)
+import machine  # experiments/machine.py and plotting.py (this script's directory is on sys.path)
+import plotting
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCRIPT = Path(__file__).resolve()
@@ -344,9 +344,7 @@ def probe_devices() -> tuple[str, int]:
 def run_driver(config: ScalingConfig, args) -> dict[str, Any]:
   backend, available = probe_devices()
   result: dict[str, Any] = {
-      "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                  "jax": jax.__version__, "backend": backend,
-                  "load_average_at_start": os.getloadavg()},
+      "machine": machine.record(backend=backend),
       "config": dataclasses.asdict(config), "device_counts": {}}
   if backend == "cpu":
     result["note"] = (f"CPU: N devices are the same {os.cpu_count()} cores split by "
