@@ -200,11 +200,14 @@ class CapacityRules(validation.CheckedFields):
     rays_per_batch: rays per training step; None derives it: with the occupancy sampler, enough
       rays to fill the sample budget at 8 occupied samples per ray (typical once empty space is
       pruned; rays that overflow the budget only cost their grid lookups); with proposals,
-      enough rays for `samples_per_batch` radiance-field samples.
+      enough rays for `samples_per_batch` radiance-field samples (half of it for forward-facing
+      scenes, see `derive_capacity`).
     samples_per_batch: radiance-field samples per training step.
     sample_groups: independent sample budgets per batch (occupancy sampler); 8 lets 1, 2, 4
       or 8 devices share training evenly (`Capacity.sample_groups`).
-    appearance_embedding: None = only for real captures (forward-facing / unbounded scenes).
+    appearance_embedding: None = only for 360-degree captures (unbounded scenes). Held-out
+      views render with the mean code, which cost fern (forward-facing) 0.3 dB at 600 s (25.4
+      against 25.7 dB); 360-degree captures have not been measured without.
     render_sample_fraction: the share of the proposal sampler's intervals per ray rendering
       takes: trained proposals put the samples on the surfaces, so two thirds render stitch 1.40x
       and fern 1.36x faster for 0.04 / 0.05 dB (results/bench_nerf_render_samples.json).
@@ -251,6 +254,28 @@ def _grid_sizes(scene: SceneInfo, rules: CapacityRules) -> tuple[int, int, int]:
   return finest, num_levels, max(12, min(rules.max_log2_table_size, surface_log2, vertices_log2))
 
 
+def _samples_and_rays(scene: SceneInfo, rules: CapacityRules) -> tuple[tuple[int, ...], int, int]:
+  """(proposal intervals per ray for each proposal network, field intervals per ray, rays per
+  training step)."""
+  # 360-degree captures: two proposal networks and more samples for larger images, within
+  # nerfacto's ranges. Forward-facing ones: one proposal network, 24 samples a ray and half the
+  # sample budget a step whatever the image size, as more and smaller steps fit more in a time
+  # budget (fern images_8 at 600 s, results/bench_nerf_fern_batch.json: 48 samples and 1,280
+  # rays 25.1 dB, 24 and 2,560 25.4, 16 and 4,096 24.5; without appearance codes 24 and 2,560
+  # 25.7, 1,280 25.9, 640 25.7; one proposal network 26.0).
+  forward_facing = scene.perspective is not None
+  pixels_scale = math.sqrt(scene.width * scene.height) / 256.0
+  samples_per_ray = 24 if forward_facing else int(np.clip(_round_up(24 * pixels_scale, 8), 16, 48))
+  proposal_samples = ((2 * samples_per_ray,) if forward_facing
+                      else (2 * samples_per_ray, samples_per_ray))
+  rays_per_batch = rules.rays_per_batch
+  if rays_per_batch is None:
+    per_ray = 8 if scene.kind == "bounded" else samples_per_ray
+    budget = rules.samples_per_batch // 2 if forward_facing else rules.samples_per_batch
+    rays_per_batch = max(256, budget // per_ray // 256 * 256)
+  return proposal_samples, samples_per_ray, rays_per_batch
+
+
 def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) -> Capacity:
   """The capacity a scene needs, sized by `rules` (whose `overrides` pin any field).
 
@@ -271,13 +296,7 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
   march_steps = _round_up(diagonal / (cell / rules.steps_per_finest_cell), 8)
   # About what a coarse pixel footprint covers per cell, capped where updates get expensive.
   occupancy_resolution = int(np.clip(_round_up(finest / 2, 16), 32, 128))
-  # Proposal sampling: more samples for larger images, within nerfacto's ranges.
-  pixels_scale = math.sqrt(scene.width * scene.height) / 256.0
-  samples_per_ray = int(np.clip(_round_up(24 * pixels_scale, 8), 16, 48))
-  rays_per_batch = rules.rays_per_batch
-  if rays_per_batch is None:
-    per_ray = 8 if bounded else samples_per_ray
-    rays_per_batch = max(256, rules.samples_per_batch // per_ray // 256 * 256)
+  proposal_samples, samples_per_ray, rays_per_batch = _samples_and_rays(scene, rules)
   appearance_embedding = rules.appearance_embedding
   capacity = Capacity(
       contract=contract,
@@ -288,13 +307,13 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
       finest_resolution=finest,
       log2_table_size=log2_table_size,
       features_per_level=rules.features_per_level,
-      appearance_embedding=(not bounded) if appearance_embedding is None else appearance_embedding,
+      appearance_embedding=contract if appearance_embedding is None else appearance_embedding,
       rays_per_batch=rays_per_batch,
       march_steps=march_steps,
       occupancy_resolution=occupancy_resolution,
       samples_per_batch=rules.samples_per_batch,
       sample_groups=rules.sample_groups,
-      proposal_samples=(2 * samples_per_ray, samples_per_ray),
+      proposal_samples=proposal_samples,
       samples_per_ray=samples_per_ray,
       render_sample_fraction=rules.render_sample_fraction,
       proposal_finest_resolution=min(finest, 256),

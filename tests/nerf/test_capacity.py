@@ -51,7 +51,7 @@ def test_real_scenes_use_proposals_and_contract_only_when_unbounded(kind, contra
   derived = capacity.derive_capacity(scene)
   assert derived.sampler == "proposal" and derived.contract == contract
   assert derived.perspective_warp == (kind == "forward_facing")
-  assert derived.background == "last_sample" and derived.appearance_embedding
+  assert derived.background == "last_sample" and derived.appearance_embedding == contract
   if contract:  # the inner box takes half of the contracted grid
     assert derived.finest_resolution >= 2 * capacity.derive_capacity(LEGO_100).finest_resolution - 8
 
@@ -115,7 +115,20 @@ def test_capacity_of_the_benchmark_scenes(shared_data):
                                                       downscale=16))
   derived = capacity.derive_capacity(fern)
   assert fern.kind == "forward_facing" and derived.sampler == "proposal"
-  assert not derived.contract and derived.appearance_embedding and derived.perspective_warp
+  assert not derived.contract and not derived.appearance_embedding and derived.perspective_warp
+  assert (derived.samples_per_ray, derived.rays_per_batch) == (24, 1280)
+
+
+@pytest.mark.parametrize("width", [100, 504, 2000])
+def test_forward_facing_scenes_take_one_proposal_24_samples_and_half_the_budget(width):
+  forward_facing = capacity.derive_capacity(dataclasses.replace(FORWARD_FACING, width=width,
+                                                                height=width * 3 // 4))
+  assert (forward_facing.proposal_samples, forward_facing.samples_per_ray) == ((48,), 24)
+  assert forward_facing.rays_per_batch == 1280  # 65,536 / 2 / 24, in multiples of 256
+  unbounded = capacity.derive_capacity(dataclasses.replace(
+      LEGO_100, kind="unbounded", background_color=None, width=width, height=width * 3 // 4))
+  assert unbounded.samples_per_ray == (16 if width == 100 else 48)
+  assert unbounded.rays_per_batch == 65536 // unbounded.samples_per_ray // 256 * 256
 
 
 def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
