@@ -17,7 +17,7 @@ import numpy as np
 
 from signerf_jax import files
 
-# BGR, matplotlib's first colours.
+# BGR, matplotlib's ten default colours (tab10).
 COLOURS = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148),
            (75, 86, 140), (194, 119, 227), (127, 127, 127), (34, 189, 188), (207, 190, 23))
 FONT = cv2.FONT_HERSHEY_SIMPLEX
