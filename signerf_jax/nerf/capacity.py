@@ -201,7 +201,7 @@ class CapacityRules(validation.CheckedFields):
       rays to fill the sample budget at 8 occupied samples per ray (typical once empty space is
       pruned; rays that overflow the budget only cost their grid lookups); with proposals,
       enough rays for `samples_per_batch` radiance-field samples (half of it for forward-facing
-      scenes, see `derive_capacity`).
+      scenes, see `_samples_and_rays`).
     samples_per_batch: radiance-field samples per training step.
     sample_groups: independent sample budgets per batch (occupancy sampler); 8 lets 1, 2, 4
       or 8 devices share training evenly (`Capacity.sample_groups`).
