@@ -9,7 +9,7 @@ on resolution the images cannot show and on Adam updates of rows no sample touch
     finest cells a surface of the scene's size crosses (~ resolution^2), since empty cells only
     collide harmlessly (instant-NGP's argument);
   * samples: an occupancy grid for bounded scenes, marching steps about one finest cell long;
-    proposal networks otherwise, with scene contraction for unbounded scenes and NDC's
+    one proposal network otherwise, with scene contraction for unbounded scenes and NDC's
     perspective warp for forward-facing ones (finest cells then sized by pixel angles);
   * background: the dataset's constant colour for bounded scenes; otherwise the last sample's
     interval reaches infinity and the field models the background itself.
@@ -200,14 +200,15 @@ class CapacityRules(validation.CheckedFields):
     rays_per_batch: rays per training step; None derives it: with the occupancy sampler, enough
       rays to fill the sample budget at 8 occupied samples per ray (typical once empty space is
       pruned; rays that overflow the budget only cost their grid lookups); with proposals,
-      enough rays for `samples_per_batch` radiance-field samples (half of it for forward-facing
-      scenes, see `_samples_and_rays`).
+      enough rays for half of `samples_per_batch` radiance-field samples (see
+      `_samples_and_rays`).
     samples_per_batch: radiance-field samples per training step.
     sample_groups: independent sample budgets per batch (occupancy sampler); 8 lets 1, 2, 4
       or 8 devices share training evenly (`Capacity.sample_groups`).
-    appearance_embedding: None = only for 360-degree captures (unbounded scenes). Held-out
-      views render with the mean code, which cost fern (forward-facing) 0.3 dB at 600 s (25.4
-      against 25.7 dB); 360-degree captures have not been measured without.
+    appearance_embedding: per-image appearance codes (NeRF-W). Held-out views render with the
+      mean code, which is no training view's own: at 600 s the codes cost fern 0.3 dB (25.4
+      against 25.7 dB) and stitch 200^2 0.6 dB (26.3 against 26.9), so they are off unless
+      asked for (a capture whose exposure varies a lot may still want them).
     render_sample_fraction: the share of the proposal sampler's intervals per ray rendering
       takes: trained proposals put the samples on the surfaces, so two thirds render stitch 1.40x
       and fern 1.36x faster for 0.04 / 0.05 dB (results/bench_nerf_render_samples.json).
@@ -226,7 +227,7 @@ class CapacityRules(validation.CheckedFields):
   rays_per_batch: PositiveInt | None = None
   samples_per_batch: PositiveInt = 65536
   sample_groups: PositiveInt = 8
-  appearance_embedding: bool | None = None
+  appearance_embedding: bool = False
   render_sample_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 2 / 3
   overrides: Mapping[str, Any] | None = None
 
@@ -257,23 +258,25 @@ def _grid_sizes(scene: SceneInfo, rules: CapacityRules) -> tuple[int, int, int]:
 def _samples_and_rays(scene: SceneInfo, rules: CapacityRules) -> tuple[tuple[int, ...], int, int]:
   """(proposal intervals per ray for each proposal network, field intervals per ray, rays per
   training step)."""
-  # 360-degree captures: two proposal networks and more samples for larger images, within
-  # nerfacto's ranges. Forward-facing ones: one proposal network, 24 samples a ray and half the
-  # sample budget a step whatever the image size, as more and smaller steps fit more in a time
-  # budget (fern images_8 at 600 s, results/bench_nerf_fern_batch.json: 48 samples and 1,280
-  # rays 25.1 dB, 24 and 2,560 25.4, 16 and 4,096 24.5; without appearance codes 24 and 2,560
-  # 25.7, 1,280 25.9, 640 25.7; one proposal network 26.0).
+  # One proposal network and half the sample budget a step, as more and smaller steps fit more
+  # in a time budget; 24 samples a ray for forward-facing scenes whatever the image size, more
+  # for larger images of 360-degree captures (within nerfacto's ranges). Measured at 600 s:
+  # fern images_8 (results/bench_nerf_fern_batch.json) 48 samples and 1,280 rays 25.1 dB, 24
+  # and 2,560 25.4, 16 and 4,096 24.5; without appearance codes 24 and 2,560 25.7, 1,280 25.9,
+  # 640 25.7; one proposal network 26.0. stitch 200^2 (results/bench_nerf_stitch_batch.json)
+  # 26.3 dB with appearance codes, two proposal networks and 2,560 rays; 26.9 without the
+  # codes, 27.6 with one proposal network, 27.6 with 1,280 rays (and 23.3 instead of 20.9 dB
+  # at 60 s).
   forward_facing = scene.perspective is not None
   pixels_scale = math.sqrt(scene.width * scene.height) / 256.0
   samples_per_ray = 24 if forward_facing else int(np.clip(_round_up(24 * pixels_scale, 8), 16, 48))
-  proposal_samples = ((2 * samples_per_ray,) if forward_facing
-                      else (2 * samples_per_ray, samples_per_ray))
   rays_per_batch = rules.rays_per_batch
   if rays_per_batch is None:
-    per_ray = 8 if scene.kind == "bounded" else samples_per_ray
-    budget = rules.samples_per_batch // 2 if forward_facing else rules.samples_per_batch
+    bounded = scene.kind == "bounded"  # The occupancy sampler: ~8 occupied samples a ray.
+    per_ray = 8 if bounded else samples_per_ray
+    budget = rules.samples_per_batch if bounded else rules.samples_per_batch // 2
     rays_per_batch = max(256, budget // per_ray // 256 * 256)
-  return proposal_samples, samples_per_ray, rays_per_batch
+  return (2 * samples_per_ray,), samples_per_ray, rays_per_batch
 
 
 def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) -> Capacity:
@@ -297,7 +300,6 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
   # About what a coarse pixel footprint covers per cell, capped where updates get expensive.
   occupancy_resolution = int(np.clip(_round_up(finest / 2, 16), 32, 128))
   proposal_samples, samples_per_ray, rays_per_batch = _samples_and_rays(scene, rules)
-  appearance_embedding = rules.appearance_embedding
   capacity = Capacity(
       contract=contract,
       background="constant" if bounded and scene.background_color is not None else "last_sample",
@@ -307,7 +309,7 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
       finest_resolution=finest,
       log2_table_size=log2_table_size,
       features_per_level=rules.features_per_level,
-      appearance_embedding=contract if appearance_embedding is None else appearance_embedding,
+      appearance_embedding=rules.appearance_embedding,
       rays_per_batch=rays_per_batch,
       march_steps=march_steps,
       occupancy_resolution=occupancy_resolution,

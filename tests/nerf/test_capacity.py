@@ -51,7 +51,7 @@ def test_real_scenes_use_proposals_and_contract_only_when_unbounded(kind, contra
   derived = capacity.derive_capacity(scene)
   assert derived.sampler == "proposal" and derived.contract == contract
   assert derived.perspective_warp == (kind == "forward_facing")
-  assert derived.background == "last_sample" and derived.appearance_embedding == contract
+  assert derived.background == "last_sample" and not derived.appearance_embedding
   if contract:  # the inner box takes half of the contracted grid
     assert derived.finest_resolution >= 2 * capacity.derive_capacity(LEGO_100).finest_resolution - 8
 
@@ -119,21 +119,35 @@ def test_capacity_of_the_benchmark_scenes(shared_data):
   assert (derived.samples_per_ray, derived.rays_per_batch) == (24, 1280)
 
 
-@pytest.mark.parametrize("width", [100, 504, 2000])
-def test_forward_facing_scenes_take_one_proposal_24_samples_and_half_the_budget(width):
+@pytest.mark.parametrize("width, unbounded_samples, unbounded_rays", [
+    (100, 16, 2048), (200, 24, 1280), (504, 48, 512), (2000, 48, 512)])
+def test_proposal_scenes_take_one_proposal_network_and_half_the_budget(width, unbounded_samples,
+                                                                       unbounded_rays):
   forward_facing = capacity.derive_capacity(dataclasses.replace(FORWARD_FACING, width=width,
                                                                 height=width * 3 // 4))
   assert (forward_facing.proposal_samples, forward_facing.samples_per_ray) == ((48,), 24)
   assert forward_facing.rays_per_batch == 1280  # 65,536 / 2 / 24, in multiples of 256
+  # 360-degree captures take more samples for larger images (stitch 200^2: 48 > 24, 1,280 rays).
   unbounded = capacity.derive_capacity(dataclasses.replace(
       LEGO_100, kind="unbounded", background_color=None, width=width, height=width * 3 // 4))
-  assert unbounded.samples_per_ray == (16 if width == 100 else 48)
-  assert unbounded.rays_per_batch == 65536 // unbounded.samples_per_ray // 256 * 256
+  assert unbounded.proposal_samples == (2 * unbounded_samples,)
+  assert (unbounded.samples_per_ray, unbounded.rays_per_batch) == (unbounded_samples,
+                                                                   unbounded_rays)
+  # The occupancy sampler's rays fill the whole budget at ~8 occupied samples a ray.
+  assert capacity.derive_capacity(LEGO_100).rays_per_batch == 8192
+
+
+def test_appearance_codes_only_when_asked_for():
+  unbounded = dataclasses.replace(LEGO_100, kind="unbounded", background_color=None)
+  assert not capacity.derive_capacity(unbounded).appearance_embedding
+  assert capacity.derive_capacity(
+      unbounded, capacity.CapacityRules(appearance_embedding=True)).appearance_embedding
 
 
 def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
   real = capacity.derive_capacity(dataclasses.replace(LEGO_100, kind="unbounded",
-                                                      background_color=None))
+                                                      background_color=None),
+                                  capacity.CapacityRules(appearance_embedding=True))
   synthetic = capacity.derive_capacity(LEGO_100)
   forward_facing = capacity.derive_capacity(dataclasses.replace(LEGO_100, kind="forward_facing",
                                                                 background_color=None))

@@ -56,7 +56,8 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
 def test_appearance_embedding_is_per_image_and_the_mean_for_novel_views(sphere):
   dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
   scene = capacity.SceneInfo.from_dataset(dataset)
-  model = nerf_model.NerfModel(scene, capacity.derive_capacity(scene))
+  model = nerf_model.NerfModel(scene, capacity.derive_capacity(
+      scene, capacity.CapacityRules(appearance_embedding=True)))
   assert model.capacity.appearance_embedding
   variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
   table = variables["params"]["field"]["appearance"]["embedding"]
