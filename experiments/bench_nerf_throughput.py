@@ -2,7 +2,7 @@
 the held-out PSNR of what was rendered, so that speed is reported with its error.
 
   python experiments/bench_nerf_throughput.py --run lego=RUN_DIR --run stitch_200=RUN_DIR \
-      [--views 4] [--train_steps 40] [--render_sample_fraction F ...] \
+      [--views 4] [--train_steps 40] [--render_sample_fraction F ...] [--whole_march N] \
       [--name bench_nerf_throughput]
 
 For each run (a `signerf train` directory):
@@ -11,7 +11,10 @@ For each run (a `signerf train` directory):
     compiles); rays/s, field samples per ray and per second (every network evaluation: the
     proposal networks' too, and with the occupancy sampler only the occupied samples), and the
     views' PSNR; with `--render_sample_fraction`, also at each of those fractions of the
-    proposal sampler's samples (`Capacity.render_sample_fraction`), side by side;
+    proposal sampler's samples (`Capacity.render_sample_fraction`), side by side; with
+    `--whole_march N`, N times in turn with and without the occupancy sampler's short march
+    (`ray_samples.render_march`; without it every ray marches through the whole scene box, as
+    before), in the same process, so that a noisy machine slows both alike;
   * training: `train_steps` steps from its checkpoint on its training views, after
     `warmup_steps` untimed ones (compilation); rays/s and field samples/s.
 Writes experiments/results/<name>.json with the machine and its load.
@@ -20,6 +23,7 @@ Writes experiments/results/<name>.json with the machine and its load.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import os
@@ -32,7 +36,7 @@ import numpy as np
 
 from signerf_jax import camera, files
 from signerf_jax.metrics import image as image_metrics
-from signerf_jax.nerf import evaluate, render, train, training_run
+from signerf_jax.nerf import evaluate, ray_samples, render, train, training_run
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.commands import load_recorded_dataset
 
@@ -94,8 +98,36 @@ def measure_training(run, training, warmup_steps: int, steps: int) -> dict[str, 
           "field_samples_per_second": (trainer.samples_trained - samples_before) / seconds}
 
 
+@contextlib.contextmanager
+def whole_march():
+  """Renders marching every step through the scene box (no `ray_samples.render_march`)."""
+  short_march = ray_samples.render_march
+  ray_samples.render_march = lambda model, variables: None
+  try:
+    yield
+  finally:
+    ray_samples.render_march = short_march
+
+
+def compare_with_whole_march(run, held_out, views: int, repeats: int) -> dict[str, Any]:
+  """Rendering with and without the short march, `repeats` times in turn."""
+  measured: dict[str, list[dict[str, Any]]] = {"short_march": [], "whole_march": []}
+  for _ in range(repeats):
+    measured["short_march"].append(measure_rendering(run, held_out, views))
+    with whole_march():
+      measured["whole_march"].append(measure_rendering(run, held_out, views))
+  result = {name: {"rays_per_second": [point["rays_per_second"] for point in points],
+                   "held_out_psnr": points[0]["held_out_psnr"]}
+            for name, points in measured.items()}
+  result["speedups"] = [short / whole for short, whole in zip(
+      result["short_march"]["rays_per_second"], result["whole_march"]["rays_per_second"])]
+  result["median_speedup"] = float(np.median(result["speedups"]))
+  return result
+
+
 def measure_run(run_dir: Path, views: int, warmup_steps: int, steps: int,
-                render_sample_fractions: tuple[float, ...] = ()) -> dict[str, Any]:
+                render_sample_fractions: tuple[float, ...] = (),
+                whole_march_repeats: int = 0) -> dict[str, Any]:
   run = evaluate.load_run(run_dir)
   held_out = load_recorded_dataset(run.description, "eval")
   training = load_recorded_dataset(run.description, "train")
@@ -110,8 +142,14 @@ def measure_run(run_dir: Path, views: int, warmup_steps: int, steps: int,
           "proposal_samples": list(capacity.proposal_samples),
           "samples_per_ray": capacity.samples_per_ray,
           "render_sample_fraction": capacity.render_sample_fraction, "step_trained": run.step,
+          "march_steps": capacity.march_steps,
+          "render_march_steps": getattr(ray_samples.render_march(run.model, run.variables),
+                                        "steps", None),
           "rendering": measure_rendering(run, held_out, views),
           "rendering_at_sample_fraction": at_fractions,
+          "whole_march_comparison": (compare_with_whole_march(run, held_out, views,
+                                                              whole_march_repeats)
+                                     if whole_march_repeats else None),
           "training": measure_training(run, training, warmup_steps, steps)}
 
 
@@ -124,6 +162,9 @@ def main() -> None:
   parser.add_argument("--train_steps", type=int, default=40)
   parser.add_argument("--render_sample_fraction", type=float, action="append", default=[],
                       help="also render at this Capacity.render_sample_fraction (repeatable)")
+  parser.add_argument("--whole_march", type=int, default=0, metavar="N",
+                      help="also compare with the occupancy sampler's whole march, N times in "
+                           "turn")
   parser.add_argument("--name", default="bench_nerf_throughput", help="results/<name>.json")
   args = parser.parse_args()
   result: dict[str, Any] = {
@@ -132,7 +173,8 @@ def main() -> None:
   for entry in args.run:
     name, _, run_dir = entry.partition("=")
     result["runs"][name] = measure_run(Path(run_dir), args.views, args.warmup_steps,
-                                       args.train_steps, tuple(args.render_sample_fraction))
+                                       args.train_steps, tuple(args.render_sample_fraction),
+                                       args.whole_march)
     print(name, result["runs"][name], flush=True)
   result["load_average_at_end"] = os.getloadavg()
   files.write_json(RESULTS / f"{args.name}.json", result)

@@ -175,7 +175,8 @@ def update_occupancy(model: NerfModel, variables: Variables, key, update_index) 
 
 
 def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, training: bool,
-                background=None, surroundings: "RegionSurroundings | None" = None):
+                background=None, surroundings: "RegionSurroundings | None" = None,
+                occupied_march: "ray_samples.OccupiedMarch | None" = None):
   """Renders rays [R] (flat batch).
 
   Args:
@@ -197,8 +198,9 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
       "samples_evaluated" (radiance-field evaluations, all fields).
   """
   if model.edit_region is None:
-    samples, ray_complete, aux = ray_samples.field_samples(model, variables, rays, key, training,
-                                                ray_samples.ray_range(model, rays), finish=True)
+    samples, ray_complete, aux = ray_samples.field_samples(
+        model, variables, rays, key, training, ray_samples.ray_range(model, rays), finish=True,
+        occupied_march=occupied_march)
     outputs = volume.volume_render(*samples, rays.cos_to_optical_axis,
                                    model.background if background is None else background)
     aux.update(edges=samples[2], weights=outputs["weights"])

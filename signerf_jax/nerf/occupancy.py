@@ -15,11 +15,17 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+import skimage.measure
 
 from signerf_jax.errors import InputError
 
 # Cells not yet evaluated hold this value and count as occupied (densities are >= 0).
 UNVISITED = -1.0
+# Rendering marches through the box around the occupied cells but leaves out specks: small faint
+# groups of cells. Lego trained 300 s at 64^3 has ~100 of 1-3 cells (alpha across a cell < 5%)
+# scattered over the whole scene box, beside one group of 15,657 cells (alpha ~1).
+SPECK_MAX_CELLS = 8
+SPECK_MAX_ALPHA = 0.25
 
 
 def initial_grid(resolution: int) -> jax.Array:
@@ -38,6 +44,50 @@ def density_threshold(grid, step: float, min_alpha: float):
 def occupied_cells(grid, step: float, min_alpha: float):
   """[R, R, R] bool: cells whose samples must be evaluated."""
   return (grid < 0.0) | (grid > density_threshold(grid, step, min_alpha))
+
+
+def occupied_box(occupied: np.ndarray, margin_cells: int = 1) -> np.ndarray:
+  """The smallest box holding every occupied cell, widened by `margin_cells` on each side.
+
+  Args:
+    occupied: [R, R, R] bool.
+    margin_cells: cells added on every side (clipped to the unit cube), so that points on the
+      box's faces, or a rounding error outside them, still find every occupied cell inside.
+  Returns:
+    [2, 3] float64 unit-cube corners (low, high); low > high when no cell is occupied.
+  """
+  resolution = occupied.shape[0]
+  corners = np.empty((2, 3))
+  for axis in range(3):
+    across = tuple(other for other in range(3) if other != axis)
+    cells = np.nonzero(np.any(occupied, axis=across))[0]
+    if cells.size == 0:
+      return np.array([[1.0] * 3, [0.0] * 3])
+    corners[:, axis] = (max(cells[0] - margin_cells, 0),
+                        min(cells[-1] + 1 + margin_cells, resolution))
+  return corners / resolution
+
+
+def without_specks(grid: np.ndarray, occupied: np.ndarray, cell_size: float) -> np.ndarray:
+  """The occupied cells but specks: connected groups of at most SPECK_MAX_CELLS cells, none of
+  them denser than an alpha of SPECK_MAX_ALPHA across a cell (`cell_size`, scene units: the
+  cells' shortest side).
+
+  Args:
+    grid: [R, R, R] float32 densities (as `update` keeps them).
+    occupied: [R, R, R] bool (`occupied_cells`).
+  Returns:
+    [R, R, R] bool.
+  """
+  labels, count = skimage.measure.label(occupied, connectivity=3, return_num=True)
+  sizes = np.bincount(labels.reshape(-1), minlength=count + 1)
+  small = sizes <= SPECK_MAX_CELLS
+  small[0] = False  # Label 0: the empty cells.
+  in_small = small[labels]
+  peaks = np.zeros(count + 1)
+  np.maximum.at(peaks, labels[in_small], grid[in_small])
+  speck = small & (-np.expm1(-peaks * cell_size) < SPECK_MAX_ALPHA)
+  return occupied & ~speck[labels]
 
 
 def lookup(occupied, unit_points):

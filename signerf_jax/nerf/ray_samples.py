@@ -10,10 +10,11 @@ sampling; `losses.interlevel_loss` trains them). Both return the samples `volume
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from signerf_jax.camera import Rays
 from signerf_jax.nerf import losses, occupancy, sampling, volume
@@ -46,19 +47,21 @@ def finish_edges(model, edges):
 
 
 def field_samples(model, variables: Variables, rays: Rays, key, training: bool, interval,
-                  finish: bool):
+                  finish: bool, occupied_march: OccupiedMarch | None = None):
   """The field's samples along each ray's (near [R], far [R]) = `interval` (e.g. `ray_range`).
 
   Args:
     finish: apply the background model to the last interval (`finish_edges`): False for a
       stretch of the ray that other samples continue.
+    occupied_march: rendering with the occupancy sampler only: march just the steps through
+      the box around the occupied cells (`render_march`).
   Returns:
     (densities [R, N], rgbs [R, N, 3], edges [R, N + 1]), ray_complete [R] bool, and
     {"proposals", "samples_evaluated"} (see `render_rays`).
   """
   if model.capacity.sampler == "occupancy":
     samples, ray_complete, aux = _occupancy_samples(model, variables, rays, key, training,
-                                                    interval, finish)
+                                                    interval, finish, occupied_march)
   else:
     samples, ray_complete, aux = _proposal_samples(model, variables, rays, key, training,
                                                    interval, finish)
@@ -87,16 +90,70 @@ def _field_at(model, variables, mask, unit_points, directions, appearance, indic
   return jnp.where(indices < mask.size, density, 0.0), rgb
 
 
-def _occupancy_samples(model, variables, rays, key, training, interval, finish):
-  capacity = model.capacity
+class OccupiedMarch(NamedTuple):
+  """Rendering with the occupancy sampler: march only `steps` steps (static) of each ray, those
+  through `box` ([2, 3] scene units), the box around the occupied cells (`render_march`)."""
+  box: Any
+  steps: int
+
+
+def render_march(model, variables: Variables) -> OccupiedMarch | None:
+  """The box around the occupied cells, leaving out specks (`occupancy.without_specks`), and
+  the steps a ray needs to cross it, rounded up to a multiple of 8 so that a slowly changing
+  grid rarely recompiles; None without the occupancy sampler, with an edit region, or when the
+  box needs the whole march.
+
+  The whole march spends most of a bounded scene's rendering time on empty cells around the
+  object: lego's occupied cells fill 0.47 x 0.80 x 0.53 of the scene box. Specks outside the
+  box are not rendered.
+  """
+  if model.capacity.sampler != "occupancy" or model.edit_region is not None:
+    return None
+  grid = np.asarray(variables["occupancy"])
+  occupied = np.asarray(occupancy.occupied_cells(grid, model.march_step, OCCUPANCY_MIN_ALPHA))
+  low, high = model.bounds.astype(np.float64)
+  cell_size = float(np.min(high - low)) / grid.shape[0]
+  box = occupancy.occupied_box(occupancy.without_specks(grid, occupied, cell_size))
+  size = np.maximum(box[1] - box[0], 0.0) * (high - low)
+  # Two more steps: one for the comb's start rounded down, one for the last interval (past it).
+  steps = int(np.ceil((np.linalg.norm(size) / model.march_step + 2) / 8)) * 8
+  if steps >= model.capacity.march_steps:
+    return None
+  return OccupiedMarch(np.float32(box * (high - low) + low), steps)
+
+
+def _occupied_marching_edges(model, rays: Rays, interval, march: OccupiedMarch):
+  """Rendering: `march.steps` consecutive steps of the whole march (`sampling.marching_edges`
+  over `interval`), from the one where the ray enters `march.box`, and the last edge at the
+  ray's far bound as in the whole march. The whole march's other samples all lie outside the
+  box, in empty cells (or specks), so the rendering is the same.
+
+  Returns:
+    [R, march.steps + 1] sorted edges.
+  """
   t_near, t_far = interval
-  edges = sampling.marching_edges(key, t_near, t_far, model.march_step, capacity.march_steps,
-                                  training)
+  entry, _, hits = sampling.intersect_aabb(rays.origins, rays.directions, march.box)
+  first_step = jnp.floor((jnp.maximum(entry, t_near) - t_near) / model.march_step)
+  # Rays that miss the box keep only the far bound (all their intervals are empty).
+  first_step = jnp.where(hits, first_step, model.capacity.march_steps)
+  offsets = first_step[:, None] + jnp.arange(march.steps + 1, dtype=jnp.float32)
+  edges = jnp.minimum(t_near[:, None] + model.march_step * offsets, t_far[:, None])
+  return edges.at[:, -1].set(t_far)
+
+
+def _occupancy_samples(model, variables, rays, key, training, interval, finish, march):
+  capacity = model.capacity
+  occupied_grid = occupancy.occupied_cells(variables["occupancy"], model.march_step,
+                                           OCCUPANCY_MIN_ALPHA)
+  if march is None:
+    t_near, t_far = interval
+    edges = sampling.marching_edges(key, t_near, t_far, model.march_step, capacity.march_steps,
+                                    training)
+  else:
+    edges = _occupied_marching_edges(model, rays, interval, march)
   centres = sampling.midpoints(edges)
   unit_points = model.to_unit_cube(rays.origins[:, None] + centres[..., None] *
                                    rays.directions[:, None])  # [R, N, 3]
-  occupied_grid = occupancy.occupied_cells(variables["occupancy"], model.march_step,
-                                           OCCUPANCY_MIN_ALPHA)
   mask = occupancy.lookup(occupied_grid, unit_points) & (edges[:, 1:] > edges[:, :-1])
   num_rays, num_steps = mask.shape
   inputs = (functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,

@@ -15,6 +15,7 @@ import numpy as np
 
 from signerf_jax import camera, files
 from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf import ray_samples
 
 # Outputs copied back per pixel (weights stay on device: they are per sample).
 IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "near_weight",
@@ -23,18 +24,20 @@ IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "ne
 NO_BOX = np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]], np.float32)
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
+@functools.partial(jax.jit, static_argnums=(0, 6))
 def _render_chunk(model: nerf_model.NerfModel, variables, chunk: camera.Rays, near_distance,
-                  selection_box):
-  """Renders one chunk of rays [C] (one compilation per chunk size, whatever the image size).
+                  selection_box, march_box, march_steps):
+  """Renders one chunk of rays [C] (one compilation per chunk size and march_steps, whatever
+  the image size; march_box and march_steps: `ray_samples.render_march`, or None).
 
   "near_weight" is the render weight of the samples nearer to the camera than `near_distance`
   (scene units, traced): what near-camera floaters contribute. "selection_weight" is the weight
   of the samples whose centres lie inside `selection_box` ([2, 3] low and high corners, scene
   units, traced): the opacity of what the NeRF holds there, as this camera sees it.
   """
+  march = None if march_steps is None else ray_samples.OccupiedMarch(march_box, march_steps)
   outputs, _ = nerf_model.render_rays(model, variables, chunk, jax.random.PRNGKey(0),
-                                      training=False)
+                                      training=False, occupied_march=march)
   edges, weights = outputs["edges"], outputs["weights"]
   centres = 0.5 * (edges[..., 1:] + edges[..., :-1])
   outputs["near_weight"] = jnp.sum(weights * (centres < near_distance), axis=-1)
@@ -59,11 +62,14 @@ def render_chunks(model: nerf_model.NerfModel, variables, rays: camera.Rays,
   rays = jax.device_get(rays)  # Sliced on the host: no compilation per chunk position.
   near_distance = jnp.float32(near_distance)
   box = jnp.asarray(NO_BOX if selection_box is None else selection_box, jnp.float32)
+  march = ray_samples.render_march(model, variables)
+  march_box, march_steps = (None, None) if march is None else march
   for start in range(0, count, chunk_size):
     stop = min(start + chunk_size, count)
     chunk = jax.tree.map(lambda a: np.concatenate(  # pylint: disable=cell-var-from-loop
         [a[start:stop], np.repeat(a[stop - 1:stop], start + chunk_size - stop, 0)]), rays)
-    outputs = jax.device_get(_render_chunk(model, variables, chunk, near_distance, box))
+    outputs = jax.device_get(_render_chunk(model, variables, chunk, near_distance, box,
+                                           march_box, march_steps))
     yield {name: value[:stop - start] for name, value in outputs.items()}
 
 

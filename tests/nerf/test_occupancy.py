@@ -64,3 +64,33 @@ def test_rendering_evaluates_every_occupied_sample_whatever_the_piece_size():
     np.testing.assert_allclose(density, expected, err_msg=f"pieces of {piece_size}")
     np.testing.assert_allclose(rgb[:, 0], expected, err_msg=f"pieces of {piece_size}")
     assert int(count) == int(mask.sum())
+
+
+def test_occupied_box_is_the_smallest_box_around_occupied_cells_with_a_margin():
+  occupied = np.zeros((8, 8, 8), bool)
+  occupied[5, 1, 3] = occupied[6, 2, 3] = True
+  np.testing.assert_allclose(occupancy.occupied_box(occupied, margin_cells=0),
+                             [[5 / 8, 1 / 8, 3 / 8], [7 / 8, 3 / 8, 4 / 8]])
+  # The margin is clipped to the unit cube.
+  occupied[7, 0, 3] = True
+  np.testing.assert_allclose(occupancy.occupied_box(occupied, margin_cells=1),
+                             [[4 / 8, 0, 2 / 8], [1, 4 / 8, 5 / 8]])
+  low, high = occupancy.occupied_box(np.zeros((8, 8, 8), bool))
+  assert np.all(low > high)
+
+
+def test_specks_are_small_faint_groups_of_cells():
+  cell_size = 0.1
+  faint, dense = 1.0, 100.0  # Alpha across a cell: 0.1 and 1.0.
+  grid = np.zeros((16, 16, 16), np.float32)
+  grid[2:8, 2:8, 2:8] = faint  # A large faint group: kept.
+  grid[12, 12, 12] = faint  # A speck.
+  grid[12, 2, 14:16] = faint, dense  # Small but dense somewhere: kept.
+  grid[14, 14, 2] = grid[15, 15, 3] = faint  # Diagonal neighbours: one speck of two cells.
+  occupied = grid > 0.5
+  kept = occupancy.without_specks(grid, occupied, cell_size)
+  expected = occupied.copy()
+  expected[12, 12, 12] = expected[14, 14, 2] = expected[15, 15, 3] = False
+  np.testing.assert_array_equal(kept, expected)
+  nothing = np.zeros_like(occupied)
+  np.testing.assert_array_equal(occupancy.without_specks(grid, nothing, cell_size), nothing)

@@ -1,11 +1,18 @@
-"""Written renders: the depth files hold the median depth, and the depth picture is finite and
-ordered for any depth map."""
+"""Rendering: marching only through the occupied cells' box renders as the whole march; written
+renders hold the median depth, and the depth picture is finite and ordered for any depth map."""
 
+import dataclasses
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from signerf_jax import files
-from signerf_jax.nerf import render
+from signerf_jax import camera, files
+from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf import ray_samples, render
+
+from small_nerf import count_compilations, small_model
 
 
 def test_write_renders_saves_median_depth_not_expected_depth(tmp_path):
@@ -39,3 +46,68 @@ def test_depth_image_puts_near_and_far_at_opposite_ends_of_the_colour_map():
   # Turbo runs from blue (near) to red (far).
   assert picture[0, 0, 2] > picture[0, 0, 0]
   assert picture[0, 1, 0] > picture[0, 1, 2]
+
+
+def _rays(origins, directions) -> camera.Rays:
+  directions = np.asarray(directions, np.float32)
+  directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+  count = len(directions)
+  return camera.Rays(np.asarray(origins, np.float32), directions,
+                     np.ones(count, np.float32), np.zeros(count, np.int32))
+
+
+@pytest.mark.parametrize("occupied_cells", ["off_centre_block", "block_and_speck", "everything",
+                                            "nothing"])
+def test_marching_only_through_the_occupied_box_renders_as_the_whole_march(sphere,
+                                                                           occupied_cells):
+  """Rendering marches only the steps through the box around the occupied cells, and gives the
+  whole march's images (without the specks outside the box): camera rays, a ray starting inside
+  the box, rays grazing its faces or parallel to an axis, and rays that miss the scene."""
+  model = small_model(sphere)
+  model = dataclasses.replace(model, capacity=dataclasses.replace(model.capacity,
+                                                                   march_steps=192))
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  resolution = variables["occupancy"].shape[0]
+  grid = np.zeros((resolution,) * 3, np.float32)
+  if occupied_cells == "everything":
+    grid[:] = 100.0
+  elif occupied_cells != "nothing":
+    cells = [slice(int(low * resolution), int(high * resolution))
+             for low, high in ((0.55, 0.9), (0.1, 0.4), (0.3, 0.7))]
+    grid[tuple(cells)] = 100.0
+  with_specks = grid.copy()
+  if occupied_cells == "block_and_speck":
+    with_specks[2, 30, 30] = 2.0  # Alpha 0.06 across the cell.
+  march = ray_samples.render_march(model, {**variables, "occupancy": jnp.asarray(with_specks)})
+  if occupied_cells == "everything":
+    assert march is None  # Nothing to skip: the whole march.
+    return
+  assert march.steps < model.capacity.march_steps / 2
+  # The block in scene units (the bounds are [-1, 1]^3): a ray along its diagonal crosses the
+  # most cells; one starts inside it (past the near plane, 0.5); one grazes its y face; one
+  # runs along an axis; two miss.
+  low, high = np.array([0.55, 0.1, 0.3]) * 2 - 1, np.array([0.9, 0.4, 0.7]) * 2 - 1
+  hard_rays = _rays([low - (high - low), low - 0.2 * (high - low), [-3, low[1], 0],
+                     [0.4, -3, 0], [-3, 4, 0], [5, 5, 5]],
+                    [high - low, high - low, [1, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 1]])
+  rays = jax.tree.map(lambda *parts: jnp.concatenate(parts), hard_rays, *(
+      jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + np.asarray(a).shape[2:]),
+                   camera.image_rays(sphere.cameras, index)) for index in (0, 5)))
+  render_with = jax.jit(lambda grid, box, steps: nerf_model.render_rays(
+      model, {**variables, "occupancy": grid}, rays, jax.random.PRNGKey(0), training=False,
+      occupied_march=None if steps is None else ray_samples.OccupiedMarch(box, steps))[0],
+                        static_argnums=2)
+  whole = render_with(jnp.asarray(grid), None, None)
+  occupied_only = render_with(jnp.asarray(with_specks), *march)
+  for name in ("rgb", "accumulation", "depth", "distance", "median_depth"):
+    np.testing.assert_allclose(occupied_only[name], whole[name], atol=1e-5, err_msg=name)
+  if occupied_cells != "nothing":
+    assert np.sum(np.asarray(whole["accumulation"]) > 0.1) > 20  # The block is seen.
+  # Whole images march the short way too, and other views reuse the compilation.
+  variables = {**variables, "occupancy": jnp.asarray(with_specks)}
+  chunked = render.render_cameras(model, variables, sphere.cameras.take([0, 5]), 256)
+  np.testing.assert_allclose(chunked["rgb"].reshape(-1, 3),
+                             whole["rgb"][len(hard_rays.camera_indices):], atol=1e-5)
+  with count_compilations() as compiled:
+    render.render_cameras(model, variables, sphere.cameras.take([1, 2]), 256)
+  assert not compiled
