@@ -68,13 +68,15 @@ def test_marching_only_through_the_occupied_box_renders_as_the_whole_march(spher
                                                                    march_steps=192))
   variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
   resolution = variables["occupancy"].shape[0]
+  # An off-centre block of cells, and its corners in scene units (the bounds are [-1, 1]^3).
+  first, end = [(np.array(fractions) * resolution).astype(int)
+                for fractions in ((0.55, 0.1, 0.3), (0.9, 0.4, 0.7))]
+  low, high = first / resolution * 2 - 1, end / resolution * 2 - 1
   grid = np.zeros((resolution,) * 3, np.float32)
   if occupied_cells == "everything":
     grid[:] = 100.0
   elif occupied_cells != "nothing":
-    cells = [slice(int(low * resolution), int(high * resolution))
-             for low, high in ((0.55, 0.9), (0.1, 0.4), (0.3, 0.7))]
-    grid[tuple(cells)] = 100.0
+    grid[first[0]:end[0], first[1]:end[1], first[2]:end[2]] = 100.0
   with_specks = grid.copy()
   if occupied_cells == "block_and_speck":
     with_specks[2, 30, 30] = 2.0  # Alpha 0.06 across the cell.
@@ -83,10 +85,8 @@ def test_marching_only_through_the_occupied_box_renders_as_the_whole_march(spher
     assert march is None  # Nothing to skip: the whole march.
     return
   assert march.steps < model.capacity.march_steps / 2
-  # The block in scene units (the bounds are [-1, 1]^3): a ray along its diagonal crosses the
-  # most cells; one starts inside it (past the near plane, 0.5); one grazes its y face; one
-  # runs along an axis; two miss.
-  low, high = np.array([0.55, 0.1, 0.3]) * 2 - 1, np.array([0.9, 0.4, 0.7]) * 2 - 1
+  # A ray along the block's diagonal crosses the most cells; one starts inside it (past the
+  # near plane, 0.5); one grazes its y face; one runs along an axis; two miss.
   hard_rays = _rays([low - (high - low), low - 0.2 * (high - low), [-3, low[1], 0],
                      [0.4, -3, 0], [-3, 4, 0], [5, 5, 5]],
                     [high - low, high - low, [1, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 1]])
