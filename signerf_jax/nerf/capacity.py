@@ -210,8 +210,11 @@ class CapacityRules(validation.CheckedFields):
       against 25.7 dB) and stitch 200^2 0.6 dB (26.3 against 26.9), so they are off unless
       asked for (a capture whose exposure varies a lot may still want them).
     render_sample_fraction: the share of the proposal sampler's intervals per ray rendering
-      takes: trained proposals put the samples on the surfaces, so two thirds render stitch 1.40x
-      and fern 1.36x faster for 0.04 / 0.05 dB (results/bench_nerf_render_samples.json).
+      takes (1: render as trained). With two proposal networks two thirds rendered stitch 1.40x
+      and fern 1.36x faster for 0.04 / 0.05 dB (results/bench_nerf_render_samples.json); with
+      one (the rules since) they cost stitch 200^2 0.49 dB (26.53 against 27.03 over its 22
+      held-out views, 1.35x faster; results/bench_nerf_render_stitch_fractions.json), so
+      rendering takes every sample unless asked (the viewer's speed against its quality).
     overrides: `Capacity` fields to force after deriving, e.g. a fixed large configuration for
       comparison; None for none. (A mapping makes the rules unhashable: they are never a static
       jit argument, only the `Capacity` they produce is.)
@@ -228,7 +231,7 @@ class CapacityRules(validation.CheckedFields):
   samples_per_batch: PositiveInt = 65536
   sample_groups: PositiveInt = 8
   appearance_embedding: bool = False
-  render_sample_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 2 / 3
+  render_sample_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 1.0
   overrides: Mapping[str, Any] | None = None
 
   def __post_init__(self):
