@@ -100,13 +100,14 @@ def measure_training(run, training, warmup_steps: int, steps: int) -> dict[str, 
 
 @contextlib.contextmanager
 def whole_march():
-  """Renders marching every step through the scene box (no `ray_samples.render_march`)."""
-  short_march = ray_samples.render_march
-  ray_samples.render_march = lambda model, variables: None
+  """Renders marching every step through the scene box (no `ray_samples.render_march`; the
+  renderer's own lookup of it is replaced, as it reuses the last one)."""
+  short_march = render._occupied_march  # pylint: disable=protected-access
+  render._occupied_march = lambda model, variables: None  # pylint: disable=protected-access
   try:
     yield
   finally:
-    ray_samples.render_march = short_march
+    render._occupied_march = short_march  # pylint: disable=protected-access
 
 
 def compare_with_whole_march(run, held_out, views: int, repeats: int) -> dict[str, Any]:
