@@ -1,5 +1,6 @@
-"""Rendering: marching only through the occupied cells' box renders as the whole march; written
-renders hold the median depth, and the depth picture is finite and ordered for any depth map."""
+"""Rendering: marching only through the occupied cells' box renders as the whole march; a subset
+of pixels renders as those pixels of the whole images; written renders hold the median depth, and
+the depth picture is finite and ordered for any depth map."""
 
 import dataclasses
 
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from signerf_jax import camera, files
+from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf import ray_samples, render
 
@@ -111,3 +113,30 @@ def test_marching_only_through_the_occupied_box_renders_as_the_whole_march(spher
   with count_compilations() as compiled:
     render.render_cameras(model, variables, sphere.cameras.take([1, 2]), 256)
   assert not compiled
+
+
+@pytest.mark.parametrize("pixels", ["off_centre_patch", "one_view_empty", "single_pixel",
+                                    "everything", "nothing"])
+def test_rendering_some_pixels_gives_those_pixels_of_the_whole_render_and_zeros_elsewhere(
+    sphere, pixels):
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  cameras = sphere.cameras.take([0, 3, 5])
+  chosen = np.zeros((3, cameras.height, cameras.width), bool)
+  if pixels == "off_centre_patch":
+    chosen[:, 1:5, -6:-1] = True
+  elif pixels == "one_view_empty":
+    chosen[0, ::3, ::2] = chosen[2, -3:] = True
+  elif pixels == "single_pixel":
+    chosen[1, -1, 0] = True
+  elif pixels == "everything":
+    chosen[:] = True
+  whole = render.render_cameras(model, variables, cameras, 256)
+  some = render.render_cameras(model, variables, cameras, 256, pixels=chosen)
+  assert set(some) == set(whole)
+  for name, image in some.items():
+    assert image.shape == whole[name].shape and image.dtype == np.float32, name
+    np.testing.assert_allclose(image[chosen], whole[name][chosen], atol=1e-6, err_msg=name)
+    assert not np.any(image[~chosen]), name
+  with pytest.raises(InputError, match="pixels"):
+    render.render_cameras(model, variables, cameras, 256, pixels=chosen[:2])

@@ -56,8 +56,9 @@ def _summary(values: np.ndarray, settings: NerfConsistencySettings) -> dict[str,
 
 
 def _fit(nerf, views: EditedViews, settings: NerfConsistencySettings) -> dict[str, Any]:
-  renders = render.render_cameras(nerf.model, nerf.variables, views.cameras)["rgb"]
-  per_view = solidity.masked_psnr(renders, views.edited, views.conditioning.mask)
+  inside = np.asarray(views.conditioning.mask) > 0
+  renders = render.render_cameras(nerf.model, nerf.variables, views.cameras, pixels=inside)["rgb"]
+  per_view = solidity.masked_psnr(renders, views.edited, inside)
   return _summary(per_view, settings)
 
 
