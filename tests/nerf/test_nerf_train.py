@@ -125,7 +125,7 @@ def test_a_time_budget_is_what_the_schedule_spans(sphere):
   stopped by its time budget ends annealed although it did few of its steps."""
   # Occupancy refreshes from the first step: every compilation happens in the first step, so no
   # later step is slow enough to leave the schedule short of its end (one at step 32 was). No
-  # warm-up: on a busy machine 3 s may hold fewer steps than it lasts.
+  # warm-up: on a busy machine 3 s may hold fewer than its 50 steps.
   config = dataclasses.replace(SMALL_CONFIG, steps=1_000_000, max_seconds=3.0,
                                occupancy_warmup_steps=0, warmup_steps=0)
   trainer = training_run.make_trainer(sphere, model=small_model(sphere), config=config)
