@@ -249,6 +249,9 @@ class FinetuneConfig(validation.CheckedFields):
       updates the whole scene, as the paper does.
     region_margin: added to every side of the selection's box, as a fraction of its largest
       side (the generated object may exceed the selection a little, as the masks may).
+    region_view_dependence: a retrained edit region colours by view direction, as the
+      original NeRF does; False makes it diffuse (`NerfModel.region_view_dependence`). A
+      fine-tune starts from the original's field and keeps its view dependence.
   """
 
   lpips_weights: str = ""
@@ -256,6 +259,7 @@ class FinetuneConfig(validation.CheckedFields):
   patch_size: Annotated[int, Range(16)] = 32
   edit_region: bool = True
   region_margin: NonNegativeFloat = 0.25
+  region_view_dependence: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -41,6 +41,10 @@ OCCUPANCY_DECAY = 0.95
 INITIAL_OPTICAL_DEPTH = 1.0
 # Proposal networks only shape the sampling: a few levels suffice (nerfacto uses 5).
 PROPOSAL_LEVELS = 5
+# Spherical-harmonics degrees of the colour's direction encoding (degree**2 channels): 1 is a
+# constant, i.e. no view dependence.
+VIEW_DEPENDENT_SH_DEGREE = 4
+DIFFUSE_SH_DEGREE = 1
 # The params entry of per-camera pose corrections (`camera.refine_rays`).
 POSE_ADJUSTMENTS = "camera_adjustments"
 
@@ -55,13 +59,20 @@ class NerfModel:
     scene, capacity: the scene's geometry and the model's size.
     edit_region: None, or ((min x, y, z), (max x, y, z)) in scene units: the box where this
       model's field is rendered over the frozen original's (module docstring).
+    region_view_dependence: the edit region's field colours by view direction as the
+      original's does; False makes it diffuse (its colour independent of the direction), so
+      views that disagree cannot each be fitted from their own direction.
   """
 
   scene: SceneInfo
   capacity: Capacity
   edit_region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+  region_view_dependence: bool = True
 
   def __post_init__(self):
+    if not isinstance(self.region_view_dependence, bool):
+      raise InputError(f"must be true or false, got {self.region_view_dependence!r}",
+                       field="region_view_dependence")
     if self.edit_region is not None:
       lower, upper = np.asarray(self.edit_region, np.float64).reshape(2, 3)
       if not np.all(upper > lower):
@@ -73,7 +84,7 @@ class NerfModel:
   @property
   def original(self) -> "NerfModel":
     """The model of the original scene an edit region is rendered over."""
-    return dataclasses.replace(self, edit_region=None)
+    return dataclasses.replace(self, edit_region=None, region_view_dependence=True)
 
   @functools.cached_property
   def field(self) -> RadianceField:
@@ -82,8 +93,10 @@ class NerfModel:
                          capacity.finest_resolution, capacity.log2_table_size,
                          capacity.features_per_level, capacity.hashed)
     embeddings = self.scene.num_images if capacity.appearance_embedding else 0
+    diffuse = self.edit_region is not None and not self.region_view_dependence
     return RadianceField(layout, width=capacity.mlp_width, num_appearance_embeddings=embeddings,
-                         initial_density=self.initial_density)
+                         initial_density=self.initial_density,
+                         sh_degree=DIFFUSE_SH_DEGREE if diffuse else VIEW_DEPENDENT_SH_DEGREE)
 
   @functools.cached_property
   def proposal_fields(self) -> tuple[DensityField, ...]:

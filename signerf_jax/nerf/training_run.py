@@ -120,6 +120,7 @@ def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
       "scene": dataclasses.asdict(model.scene),
       "capacity": dataclasses.asdict(model.capacity),
       "edit_region": model.edit_region,
+      "region_view_dependence": model.region_view_dependence,
       "dataset": dataset.summary(),
       "data_options": dict(data_options or {}),
   })
@@ -132,7 +133,8 @@ def read_model_file(run_dir: str | os.PathLike) -> tuple[nerf_model.NerfModel, d
   try:
     model = nerf_model.NerfModel(SceneInfo.from_json(description["scene"]),
                                  Capacity.from_json(description["capacity"]),
-                                 description.get("edit_region"))
+                                 description.get("edit_region"),
+                                 description.get("region_view_dependence", True))
   except (KeyError, TypeError, ValueError, InputError) as error:
     raise InputError(f"malformed model description ({error})", path) from None
   return model, description

@@ -165,6 +165,28 @@ def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
     training_run.read_model_file(tmp_path)
 
 
+def test_a_diffuse_edit_region_colours_alike_from_every_direction(sphere, tmp_path):
+  model = dataclasses.replace(small_model(sphere), edit_region=REGION,
+                              region_view_dependence=False)
+  variables = nerf_model.init_variables(model, jax.random.key(0))
+  points = jnp.full((4, 3), 0.6, jnp.float32)
+  directions = jnp.asarray([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1]], jnp.float32)
+  colours = lambda model, params: np.asarray(model.field.apply({"params": params["field"]},
+                                                                points, directions)[1])
+  diffuse = colours(model, variables["params"])
+  np.testing.assert_allclose(diffuse, np.broadcast_to(diffuse[:1], diffuse.shape), atol=1e-6)
+  # The original field underneath keeps its view dependence (and its parameters' shapes).
+  view_dependent = colours(model.original, variables["original"]["params"])
+  assert np.abs(view_dependent - view_dependent[:1]).max() > 1e-4
+  training_run.write_model_file(tmp_path, model, sphere)
+  assert training_run.read_model_file(tmp_path)[0] == model
+  description = json.loads((tmp_path / training_run.MODEL_FILE).read_text())
+  description["region_view_dependence"] = "false"
+  (tmp_path / training_run.MODEL_FILE).write_text(json.dumps(description))
+  with pytest.raises(InputError, match="region_view_dependence"):
+    training_run.read_model_file(tmp_path)
+
+
 def test_the_proposal_sampler_keeps_rays_missing_the_region_too(sphere):
   region_model, region_variables = proposal_region_model(sphere)
   cameras = sphere.cameras.take([1])

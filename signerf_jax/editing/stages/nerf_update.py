@@ -63,6 +63,9 @@ def update_nerf(context: EditContext, iteration: int = 1) -> str:
     # A new field (over the original one outside the edit region); without an edit region a
     # new NeRF built for the edited dataset, as for any dataset.
     kept = {"original": variables["original"]} if model.edit_region is not None else None
+    if kept:
+      model = dataclasses.replace(
+          model, region_view_dependence=context.settings.finetune.region_view_dependence)
     trainer = training_run.train(edited, run_dir, config=config, data_options=data_options,
                                  model=model if kept else None, init_variables=kept,
                                  capacity_rules=context.settings.capacity,
