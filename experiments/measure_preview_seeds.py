@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from signerf_jax import files
+from signerf_jax.default_model import generated_objects
 from signerf_jax.editing import figures, sheet
-from signerf_jax.metrics import colors
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_scene_edit import signerf, stacked  # pylint: disable=wrong-import-position
@@ -49,15 +49,15 @@ def tile_colors(candidate: np.ndarray, selected: np.ndarray, layout: sheet.Sheet
   """The dominant palette colour of each tile's pixels on the proxy's silhouette
   (candidate [SH, SW, 3]; selected [M, h, w] bool), for the tiles that show the proxy."""
   tiles, _ = sheet.disassemble(candidate, layout)
-  return [colors.dominant_color(np.asarray(tile)[shown])
-          for tile, shown in zip(tiles, selected) if shown.any()]
+  names, _ = generated_objects.object_colors(np.asarray(tiles), selected)
+  return [name for name in names if name is not None]
 
 
 def measure(edit: Path, seeds: list[int]) -> dict:
   """The candidates of the preview in `edit` compared with each other."""
   reference = np.load(edit / "reference" / "inputs.npz")
   selected, masks = reference["selected"], reference["mask"]
-  layout = sheet.SheetLayout(2, 3, -1, -1, *selected.shape[1:])
+  layout = sheet.SheetLayout(tile_height=selected.shape[1], tile_width=selected.shape[2])
   candidates = np.stack([np.load(edit / "preview" / "candidates" / f"{seed}.npz")["rgb"]
                          for seed in seeds])
   empty_slot = np.zeros(selected.shape[1:] + (1,), np.float32)

@@ -76,4 +76,3 @@ def test_a_named_colour_is_kept_by_every_seed(sheet_sample):
   _, _, candidates = _candidates("a red cube", inputs)
   assert [_sheet_color(candidate, inputs, silhouettes) for candidate in candidates] == [
       "red"] * len(SEEDS)
-
