@@ -12,6 +12,22 @@ from signerf_jax.data.frame import SCENE_KINDS
 
 
 @dataclasses.dataclass(frozen=True)
+class SceneViews:
+  """A dataset's views without their pixels: what placing a selection and cameras in the scene
+  needs (`load.load_views` reads it without decoding an image). Attributes as `Dataset`'s."""
+
+  cameras: Cameras
+  image_names: tuple[str, ...]
+  scene_bounds: np.ndarray
+  scene_kind: str
+  world_from_source: np.ndarray
+
+  @property
+  def num_images(self) -> int:
+    return len(self.image_names)
+
+
+@dataclasses.dataclass(frozen=True)
 class Dataset:
   """Images with their cameras, in the normalised scene frame.
 
@@ -66,6 +82,11 @@ class Dataset:
   @property
   def num_images(self) -> int:
     return len(self.image_names)
+
+  @property
+  def views(self) -> SceneViews:
+    return SceneViews(self.cameras, self.image_names, self.scene_bounds, self.scene_kind,
+                      self.world_from_source)
 
   @property
   def height(self) -> int:

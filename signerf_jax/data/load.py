@@ -19,7 +19,7 @@ from signerf_jax.data import blender, colmap, llff, nerfstudio, neus, splits, vi
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data.capture import Capture, ViewFiles
-from signerf_jax.data.dataset import Dataset
+from signerf_jax.data.dataset import Dataset, SceneViews
 from signerf_jax.data.frame import SCENE_KINDS, SceneFrame
 from signerf_jax.errors import InputError
 
@@ -141,6 +141,47 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
   Raises:
     InputError: naming the file and field, or the parameter, at fault.
   """
+  capture, frame, selected, scene_views = _chosen_views(
+      root, split, downscale, eval_every, held_out, scene_kind, scene_center, scene_radius)
+  background = (capture.background_color if capture.background_color is not None
+                else np.asarray(background_color, np.float32))
+  cameras = scene_views.cameras
+  reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
+  images, alphas, masks, depths, object_masks = reader.read_views(
+      [capture.files[index] for index in selected], background)
+  return Dataset(
+      images=images,
+      cameras=cameras,
+      image_names=scene_views.image_names,
+      scene_bounds=scene_views.scene_bounds,
+      scene_kind=scene_views.scene_kind,
+      near=float(frame.near),
+      far=float(frame.far),
+      background_color=background if frame.kind == "bounded" else None,
+      world_from_source=scene_views.world_from_source,
+      alphas=alphas if np.any(alphas < 1) else None,
+      masks=masks,
+      depths=None if depths is None else depths * np.float32(frame.scale),
+      extras={} if object_masks is None else {"object_masks": object_masks.astype(np.int32)},
+      root=str(root),
+      frame=dataclasses.replace(frame, world_from_source=frame.world_from_source
+                                @ capture.file_from_source).describe(),
+  )
+
+
+def load_views(root: str | os.PathLike, *, split: str = "train", downscale: int = 1,
+               eval_every: int | None = None, held_out: Sequence[str] = (),
+               scene_kind: str | None = None, scene_center=None,
+               scene_radius: float | None = None) -> SceneViews:
+  """The views `load_dataset` with these arguments reads, without reading their pixels: the
+  cameras and the scene frame, in milliseconds (a dataset's images take seconds to decode)."""
+  return _chosen_views(root, split, downscale, eval_every, held_out, scene_kind, scene_center,
+                       scene_radius)[3]
+
+
+def _chosen_views(root, split, downscale, eval_every, held_out, scene_kind, scene_center,
+                  scene_radius) -> tuple[Capture, SceneFrame, np.ndarray, SceneViews]:
+  """The capture, its scene frame, the indices of the split's views, and those views."""
   _check_options(downscale, scene_kind, scene_radius)
   capture = read_capture(root, downscale)
   frame = scene_frame(capture, scene_kind=scene_kind, scene_center=scene_center,
@@ -154,29 +195,11 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
     raise InputError(f"{downscale} leaves no pixel of the {full_size} images (at most "
                      f"{min(capture.cameras.width, capture.cameras.height)})", capture.root,
                      "downscale")
-  background = (capture.background_color if capture.background_color is not None
-                else np.asarray(background_color, np.float32))
-  reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
-  images, alphas, masks, depths, object_masks = reader.read_views(
-      [capture.files[index] for index in selected], background)
-  world_from_source = frame.world_from_source @ capture.file_from_source
-  return Dataset(
-      images=images,
-      cameras=cameras,
-      image_names=tuple(capture.names[index] for index in selected),
-      scene_bounds=np.asarray(frame.bounds, np.float32),
-      scene_kind=frame.kind,
-      near=float(frame.near),
-      far=float(frame.far),
-      background_color=background if frame.kind == "bounded" else None,
-      world_from_source=world_from_source.astype(np.float32),
-      alphas=alphas if np.any(alphas < 1) else None,
-      masks=masks,
-      depths=None if depths is None else depths * np.float32(frame.scale),
-      extras={} if object_masks is None else {"object_masks": object_masks.astype(np.int32)},
-      root=str(root),
-      frame=dataclasses.replace(frame, world_from_source=world_from_source).describe(),
-  )
+  return capture, frame, selected, SceneViews(
+      cameras=cameras, image_names=tuple(capture.names[index] for index in selected),
+      scene_bounds=np.asarray(frame.bounds, np.float32), scene_kind=frame.kind,
+      world_from_source=(frame.world_from_source
+                         @ capture.file_from_source).astype(np.float32))
 
 
 def _check_options(downscale, scene_kind, scene_radius) -> None:

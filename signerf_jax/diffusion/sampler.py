@@ -53,6 +53,7 @@ from flax import struct
 
 from signerf_jax.clip.text import PromptEmbeddings
 from signerf_jax.diffusion import guidance as guidance_lib
+from signerf_jax.diffusion import layers
 from signerf_jax.diffusion import mask_processing
 from signerf_jax.diffusion import vae as vae_lib
 from signerf_jax.diffusion.controlnet import ControlNet
@@ -157,12 +158,15 @@ class SamplerSettings:
       level; otherwise from pure noise scaled by `init_noise_sigma`.
     paste_back: composite the output over the input image through the (blurred) mask.
     mask_blur: PIL GaussianBlur radius (pixels) applied to the mask for the paste-back; 0 = none.
+    winograd_convolutions: let large 3x3 convolutions run by Winograd's algorithm (faster to
+      run, slower to compile: `layers.winograd_convolutions`); results agree to float rounding.
   """
   classifier_free_guidance: bool = True
   guess_mode: bool = False
   start_from_image: bool = False
   paste_back: bool = False
   mask_blur: float = 0.0
+  winograd_convolutions: bool = True
 
 
 @functools.partial(jax.jit, static_argnames=("latent_shape", "num_steps"))
@@ -356,14 +360,15 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
     [B, H, W, 3] float32 images in [0, 1].
   """
   _check_inputs(models, inputs)
-  constants = _loop_constants(models, prompt, time_ids, inputs, noise, settings)
-  if settings.start_from_image:
-    latents = schedule.add_noise(constants.image_latents, noise.latents, 0)
-  else:
-    latents = noise.latents * schedule.init_noise_sigma
-  latents = _denoise(models, schedule, constants, guidance, settings, latents, noise.steps)
-  # diffusers' postprocess: [-1, 1] -> [0, 1].
-  decoded = vae_lib.decode_from_latents(models.vae, models.vae_params, latents)
+  with layers.winograd_convolutions(settings.winograd_convolutions):
+    constants = _loop_constants(models, prompt, time_ids, inputs, noise, settings)
+    if settings.start_from_image:
+      latents = schedule.add_noise(constants.image_latents, noise.latents, 0)
+    else:
+      latents = noise.latents * schedule.init_noise_sigma
+    latents = _denoise(models, schedule, constants, guidance, settings, latents, noise.steps)
+    # diffusers' postprocess: [-1, 1] -> [0, 1].
+    decoded = vae_lib.decode_from_latents(models.vae, models.vae_params, latents)
   generated = jnp.clip(decoded * 0.5 + 0.5, 0.0, 1.0)
   if settings.paste_back:
     generated = mask_processing.paste_back(

@@ -61,6 +61,8 @@ class Generator:
     options: the generation knobs (steps, strength, guidance, ControlNet scale, ...).
     mesh: the devices, axis "views".
     views_per_device: samples each device inpaints per call.
+    winograd_convolutions: False for calls made once (quicker to compile, slower to run;
+      `pipeline.generate`).
   """
 
   pipeline: pipeline_lib.Pipeline
@@ -68,6 +70,7 @@ class Generator:
   options: pipeline_lib.GenerationOptions
   mesh: Mesh
   views_per_device: int
+  winograd_convolutions: bool = True
 
   @property
   def batch_size(self) -> int:
@@ -100,7 +103,8 @@ class Generator:
     """
     output = pipeline_lib.generate(
         self.pipeline, self.prompt, self.shard(image), self.shard(mask), self.shard(control),
-        key=self.shard(keys, jnp.uint32), options=self.options)
+        key=self.shard(keys, jnp.uint32), options=self.options,
+        winograd_convolutions=self.winograd_convolutions)
     return np.asarray(jax.device_get(output))[:len(keys)]
 
 
@@ -225,12 +229,13 @@ class SheetInputs:
 
 def generate_sheets(generator: Generator, inputs: SheetInputs, recipes: Sequence[SheetRecipe],
                     known: Callable[[SheetRecipe], np.ndarray | None] = lambda recipe: None,
-                    progress: Callable[[int], None] = lambda count: None
+                    on_batch: Callable[[dict[SheetRecipe, np.ndarray]], None] = lambda made: None
                     ) -> dict[SheetRecipe, np.ndarray]:
   """The sheets of `recipes` ([SH, SW, 3] each), with those `known` returns reused.
 
   Plain seeds are generated together in batches; re-rolls of one parent with the same tiles
-  are batched too; parents are made first. `progress(count)` is called after each batch.
+  are batched too; parents are made first. `on_batch` receives each batch's sheets as soon as
+  they are made (recipe -> sheet; parents needed by re-rolls included).
   """
   for recipe in recipes:
     recipe.check(inputs.layout.num_tiles)
@@ -270,5 +275,5 @@ def generate_sheets(generator: Generator, inputs: SheetInputs, recipes: Sequence
         for member, sheet in zip(chunk, generated):
           sheets[member] = sheet if parent is None else np.where(cells > 0, sheet,
                                                                  sheets[parent])
-        progress(len(chunk))
+        on_batch({member: sheets[member] for member in chunk})
   return {recipe: sheets[recipe] for recipe in recipes}

@@ -154,8 +154,8 @@ def box_selection(dataset: Dataset, views, rectangles) -> SelectionConfig:
 def selection_mesh(selection: SelectionConfig, dataset: Dataset) -> mesh_lib.Mesh:
   """The selection as the edit builds it, as a mesh in the scene frame (a box's as a cuboid)."""
   if selection.kind == "proxy":
-    return select_lib.place_proxy(selection, dataset)
-  box = select_lib.make_box(selection, dataset)
+    return select_lib.place_proxy(selection, dataset.views)
+  box = select_lib.make_box(selection, dataset.views)
   lower, upper = np.asarray(box.minimum, np.float64), np.asarray(box.maximum, np.float64)
   return mesh_lib.transform_mesh(primitives.box(tuple(upper - lower)),
                                  mesh_lib.similarity_transform(1.0, None, (lower + upper) / 2))
@@ -200,8 +200,8 @@ def handle_pose(selection: SelectionConfig, dataset: Dataset) -> tuple[np.ndarra
                      "move: place it with --on_ground (or `signerf place`)",
                      field="ground_position")
   rotation = scene_from_frame[:3, :3] / poses_lib.similarity_scale(scene_from_frame)
-  own = mesh_lib.upright_rotation(select_lib.up_direction(selection, dataset), selection.mesh_up,
-                                  selection.heading_degrees)
+  own = mesh_lib.upright_rotation(select_lib.up_direction(selection, dataset.views),
+                                  selection.mesh_up, selection.heading_degrees)
   return rotation @ own, poses_lib.transform_points(scene_from_frame, selection.ground_position)
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from signerf_jax import files
 from signerf_jax.data import poses as poses_lib
-from signerf_jax.data.dataset import Dataset
+from signerf_jax.data.dataset import SceneViews
 from signerf_jax.editing.config import PRIMITIVE_PREFIX, SelectionConfig
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import mesh as mesh_lib
@@ -95,35 +95,35 @@ def load_proxy(name: str) -> mesh_lib.Mesh:
     raise InputError(error.problem, error.path, "proxy") from None
 
 
-def up_direction(config: SelectionConfig, dataset: Dataset) -> np.ndarray:
+def up_direction(config: SelectionConfig, views: SceneViews) -> np.ndarray:
   """The up direction in the configured frame: `config.up`, or the cameras' mean up."""
   if config.up is not None:
     return np.asarray(config.up, np.float64)
-  up = reference_cameras.scene_up(dataset.cameras)  # The dataset's cameras are in the scene frame.
+  up = reference_cameras.scene_up(views.cameras)  # The dataset's cameras are in the scene frame.
   if config.frame == "source":
-    up = np.linalg.inv(dataset.world_from_source[:3, :3]) @ up
+    up = np.linalg.inv(views.world_from_source[:3, :3]) @ up
   return up
 
 
-def place_proxy(config: SelectionConfig, dataset: Dataset) -> mesh_lib.Mesh:
+def place_proxy(config: SelectionConfig, views: SceneViews) -> mesh_lib.Mesh:
   """The proxy of `config`, placed (in the configured frame, then mapped into the scene's)."""
   proxy = load_proxy(config.proxy)
   if config.ground_position is not None:
     if not config.ground_size > 0:
       raise InputError(f"must be positive, got {config.ground_size}", field="ground_size")
     placed = mesh_lib.place_on_ground(proxy, config.ground_position, config.ground_size,
-                                      up=up_direction(config, dataset),
+                                      up=up_direction(config, views),
                                       mesh_up=config.mesh_up,
                                       heading_degrees=config.heading_degrees)
   else:
     placed = mesh_lib.transform_mesh(proxy, mesh_lib.similarity_transform(
         config.scale, config.rotation_degrees, config.translation))
   if config.frame == "source":
-    placed = mesh_lib.transform_mesh(placed, dataset.world_from_source)
+    placed = mesh_lib.transform_mesh(placed, views.world_from_source)
   return placed
 
 
-def make_box(config: SelectionConfig, dataset: Dataset) -> selection_lib.Box:
+def make_box(config: SelectionConfig, views: SceneViews) -> selection_lib.Box:
   """The configured box in the scene frame (a source-frame box becomes the scene-frame box
   around its rotated corners)."""
   try:
@@ -134,28 +134,28 @@ def make_box(config: SelectionConfig, dataset: Dataset) -> selection_lib.Box:
     raise InputError("box corners must be 3-vectors (min x y z, max x y z)", field="box")
   box = selection_lib.Box.create(lower, upper)
   if config.frame == "source":
-    corners = poses_lib.transform_points(dataset.world_from_source, np.asarray(box.corners))
+    corners = poses_lib.transform_points(views.world_from_source, np.asarray(box.corners))
     box = selection_lib.Box.create(corners.min(0), corners.max(0))
   return box
 
 
-def build_selection(config: SelectionConfig, dataset: Dataset) -> EditSelection:
-  """The selection of `config`, checked against `dataset` (see the module docstring)."""
+def build_selection(config: SelectionConfig, views: SceneViews) -> EditSelection:
+  """The selection of `config`, checked against `views` (see the module docstring)."""
   if config.kind == "box":
-    edit_selection = EditSelection("box", box=make_box(config, dataset))
+    edit_selection = EditSelection("box", box=make_box(config, views))
   else:
-    edit_selection = EditSelection("proxy", proxy=place_proxy(config, dataset))
+    edit_selection = EditSelection("proxy", proxy=place_proxy(config, views))
   lower, upper = edit_selection.bounds
-  if dataset.scene_kind == "bounded":
-    scene_lower, scene_upper = np.asarray(dataset.scene_bounds, np.float64)
+  if views.scene_kind == "bounded":
+    scene_lower, scene_upper = np.asarray(views.scene_bounds, np.float64)
     if np.any(lower < scene_lower - BOUNDS_TOLERANCE) or np.any(upper > scene_upper +
                                                                  BOUNDS_TOLERANCE):
       raise InputError(f"the selection spans {lower.round(3).tolist()} .. "
                        f"{upper.round(3).tolist()}, outside the scene bounds "
                        f"{scene_lower.round(3).tolist()} .. {scene_upper.round(3).tolist()} the "
                        "NeRF models", field="selection")
-  if not reference_cameras.cameras_seeing(dataset.cameras, edit_selection.points).any():
-    raise InputError(f"none of the {dataset.num_images} dataset cameras sees the selection "
+  if not reference_cameras.cameras_seeing(views.cameras, edit_selection.points).any():
+    raise InputError(f"none of the {views.num_images} dataset cameras sees the selection "
                      f"({lower.round(3).tolist()} .. {upper.round(3).tolist()})",
                      field="selection")
   return edit_selection

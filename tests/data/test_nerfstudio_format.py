@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from signerf_jax import files
-from signerf_jax.data import load_dataset, nerfstudio, poses, write_nerfstudio
+from signerf_jax.data import load_dataset, load_views, nerfstudio, poses, write_nerfstudio
 from signerf_jax.errors import InputError
 
 
@@ -65,6 +65,22 @@ def test_split_holds_out_every_nth_frame_and_shares_the_frame(tmp_path, dataset_
   np.testing.assert_array_equal(held_out.cameras.camera_to_world,
                                 dataset.cameras.camera_to_world[[0, 4, 8]])
   np.testing.assert_array_equal(train.world_from_source, held_out.world_from_source)
+
+
+@pytest.mark.parametrize("split", ["train", "eval"])
+def test_the_views_without_pixels_are_the_dataset_s_and_read_no_image(tmp_path, dataset_factory,
+                                                                       split):
+  write_nerfstudio(tmp_path, dataset_factory(count=10))
+  dataset = load_dataset(tmp_path, split=split, eval_every=4, downscale=2)
+  for image in (tmp_path / "images").iterdir():
+    image.unlink()  # What the views are read from must not include a pixel.
+  views = load_views(tmp_path, split=split, eval_every=4, downscale=2)
+  assert views.image_names == dataset.image_names and views.num_images == dataset.num_images
+  assert views.scene_kind == dataset.scene_kind
+  assert_same_cameras(views.cameras, dataset.cameras)
+  for name in ("scene_bounds", "world_from_source"):
+    np.testing.assert_array_equal(getattr(views, name), getattr(dataset, name), err_msg=name)
+  assert_same_cameras(dataset.views.cameras, dataset.cameras)
 
 
 def test_downscale_prefers_prepared_folders_and_otherwise_averages(tmp_path, dataset_factory):

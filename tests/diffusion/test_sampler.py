@@ -10,7 +10,7 @@ import pytest
 
 from signerf_jax.clip import text as clip_text
 from signerf_jax.diffusion import guidance as guidance_lib
-from signerf_jax.diffusion import model_configs, sampler, schedulers, solvers, weights
+from signerf_jax.diffusion import layers, model_configs, sampler, schedulers, solvers, weights
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 from signerf_jax.diffusion.vae import AutoencoderKL
@@ -81,6 +81,36 @@ def test_a_two_by_three_sheet_runs_and_memory_does_not_grow_with_the_steps():
   outside = mask[..., 0] == 0
   np.testing.assert_array_equal(out[outside], np.asarray(inputs.image)[outside])
   assert np.abs(out - np.asarray(inputs.image))[~outside].mean() > 0.05
+
+
+def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatch):
+  """Without Winograd (the preview's quick-to-compile program) the sampler is its own compiled
+  program, with XLA's convolutions where Winograd's matmuls were, and samples the same image to
+  float rounding. The tiny networks take Winograd only with its size limits lowered."""
+  monkeypatch.setattr(layers, "IM2COL_MAX_POSITIONS", 0)
+  monkeypatch.setattr(layers, "WINOGRAD_MIN_TILES", 1)
+  monkeypatch.setattr(layers, "WINOGRAD_MIN_CHANNELS", 8)
+  height, width = 40, 24  # A size no other test samples, so no program is shared with them.
+  rng = np.random.default_rng(1)
+  image, mask, control = (jnp.asarray(rng.random((1, height, width, channels)), jnp.float32)
+                          for channels in (3, 1, 1))
+  schedule = solvers.make_schedule(schedulers.SchedulerConfig(kind="dpm_solver_multistep"), 2)
+  arguments = (tiny_models(), schedule,
+               clip_text.PromptEmbeddings(jnp.ones((1, 8, TEXT_WIDTH)),
+                                          jnp.zeros((1, 8, TEXT_WIDTH))), None,
+               sampler.InpaintingInputs(image, jnp.round(mask), control),
+               sampler.draw_noise(jax.random.split(jax.random.key(0), 1),
+                                  (height // 4, width // 4, 4), 2),
+               guidance_lib.Guidance(jnp.float32(7.5), jnp.ones((2,), jnp.float32)))
+  lowered = {winograd: sampler.sample.lower(*arguments, settings=sampler.SamplerSettings(
+      winograd_convolutions=winograd)) for winograd in (True, False)}
+  convolutions = {winograd: program.as_text().count("stablehlo.convolution")
+                  for winograd, program in lowered.items()}
+  assert convolutions[False] > convolutions[True]
+  images = {winograd: np.asarray(program.compile()(*arguments))
+            for winograd, program in lowered.items()}
+  np.testing.assert_allclose(images[False], images[True], atol=1e-4)
+  assert np.abs(images[True] - np.asarray(image)).mean() > 0.01  # It did generate something.
 
 
 def test_noise_of_a_sample_depends_only_on_its_key():

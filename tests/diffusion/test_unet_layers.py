@@ -56,6 +56,13 @@ def test_conv2d_picks_the_algorithm_by_size():
   assert "conv_general_dilated" in primitives(odd)  # neither fast path applies
   assert "conv_general_dilated" in primitives(huge)  # Winograd would need 1.6 GB
   assert "conv_general_dilated" not in primitives(odd, jnp.bfloat16)  # im2col: bf16 matmul
+  with layers.winograd_convolutions(False):
+    assert "conv_general_dilated" in primitives(winograd)
+    assert "conv_general_dilated" not in primitives(im2col)  # Only Winograd is turned off.
+    with layers.winograd_convolutions(True):
+      assert "conv_general_dilated" not in primitives(winograd)
+    assert "conv_general_dilated" in primitives(winograd)
+  assert "conv_general_dilated" not in primitives(winograd)  # Back on after the block.
 
 
 @pytest.mark.parametrize("height, width", [(5, 7), (1, 1)])

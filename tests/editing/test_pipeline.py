@@ -157,6 +157,27 @@ def test_a_rerun_skips_finished_stages_and_a_new_sheet_redoes_only_what_follows(
   assert str(sheet["recipe"]) == "0/1@5"
 
 
+def test_the_preview_shows_each_candidate_as_soon_as_it_is_made(finished_edit, tmp_path,
+                                                                 monkeypatch):
+  directory, _, chosen = finished_edit
+  directory = Path(shutil.copytree(directory, tmp_path / "edit"))
+  widths = []  # Of preview.png, each time it is written.
+  write_image = files.write_image
+
+  def recording(path, image, *args, **kwargs):
+    if Path(path).name == "preview.png":
+      widths.append(np.asarray(image).shape[1])
+    return write_image(path, image, *args, **kwargs)
+
+  monkeypatch.setattr(files, "write_image", recording)
+  stages.run_edit(directory, settings_of(chosen + ["PreviewConfig.seeds = (1, 3, 4)"]),
+                  until="preview", progress=False, log=lambda line: None)
+  # Seed 1's candidate was made before; seeds 3 and 4 come one at a time, each shown at once.
+  assert len(widths) == 3 and widths[0] < widths[1] == widths[2], widths
+  for seed in (1, 3, 4):
+    assert (directory / "preview" / "candidates" / f"{seed}.png").is_file()
+
+
 def test_an_unknown_stage_is_an_error_naming_the_stages(finished_edit):
   directory, _, chosen = finished_edit
   with pytest.raises(InputError, match="unknown stage 'sheets'.*update"):

@@ -91,6 +91,20 @@ def test_an_interrupted_update_resumes_to_exactly_the_uninterrupted_images(gener
   assert run(generator, tmp_path / "resumed", views)["batches"] == 0
 
 
+def test_sheets_are_handed_over_batch_by_batch_as_they_are_made(generator):
+  """What lets the preview show its first candidates while the others are generated."""
+  rgb, control = make_sheet()
+  inputs = generation.SheetInputs(rgb, control, (control > 0.5).astype(np.float32), LAYOUT)
+  recipes = [generation.SheetRecipe.parse(text) for text in ("0", "1", "2", "3", "4", "2/1@9")]
+  batches = []
+  sheets = generation.generate_sheets(generator, inputs, recipes, on_batch=batches.append)
+  assert [[str(recipe) for recipe in batch] for batch in batches] == [
+      ["0", "1", "2", "3"], ["4"], ["2/1@9"]]  # Batches of generator.batch_size = 4.
+  for batch in batches:
+    for recipe, sheet in batch.items():
+      np.testing.assert_array_equal(sheet, sheets[recipe])
+
+
 def test_the_update_changes_only_masked_pixels_and_only_the_slot(generator):
   views = make_views(3)
   sheet_rgb, sheet_control = make_sheet()

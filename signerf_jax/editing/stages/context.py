@@ -17,8 +17,8 @@ import numpy as np
 
 from signerf_jax import camera as camera_lib
 from signerf_jax import checkpoints, files
-from signerf_jax.data import load_dataset
-from signerf_jax.data.dataset import Dataset
+from signerf_jax.data import load_dataset, load_views
+from signerf_jax.data.dataset import Dataset, SceneViews
 from signerf_jax.editing import conditioning as conditioning_lib
 from signerf_jax.editing import generation
 from signerf_jax.editing import select as select_lib
@@ -85,13 +85,22 @@ class EditContext:
     return self.load_split("train")
 
   @functools.cached_property
+  def views(self) -> SceneViews:
+    """The training views' cameras and scene frame: all the selection and the reference cameras
+    need, without decoding the images (~2.5 s on stitch; the preview needs no pixel)."""
+    if "dataset" in self.__dict__:  # Already loaded.
+      return self.dataset.views
+    options = dict(self.data_options)
+    return load_views(options.pop("root"), split="train", **options)
+
+  @functools.cached_property
   def eval_cameras(self) -> camera_lib.Cameras:
     """Held-out cameras, where background preservation is measured."""
     return self.load_split("eval").cameras
 
   @functools.cached_property
   def selection(self) -> select_lib.EditSelection:
-    return select_lib.build_selection(self.settings.selection, self.dataset)
+    return select_lib.build_selection(self.settings.selection, self.views)
 
   # The NeRFs ---------------------------------------------------------------------------------
 

@@ -97,7 +97,7 @@ def train_original(context: EditContext) -> str:
 def select(context: EditContext) -> str:
   selection = context.selection
   written = select_lib.write_selection(context.directory.path("selection"), selection)
-  seeing = reference_cameras.cameras_seeing(context.dataset.cameras, selection.points)
+  seeing = reference_cameras.cameras_seeing(context.views.cameras, selection.points)
   center, radius = selection.sphere()
   what = (f"box {np.round(selection.bounds, 3).tolist()}" if selection.kind == "box"
           else f"proxy {Path(selection.proxy.source).name} ({len(selection.proxy.faces)} "

@@ -65,9 +65,9 @@ def first_iteration_cameras(context: EditContext, points=None):
   if config.reference_cameras:
     cameras = read_reference_cameras(config.reference_cameras, count, size)
     return cameras, reference_cameras.describe_reference_cameras(
-        cameras, context.dataset.cameras, points, context.settings.placement.up)
+        cameras, context.views.cameras, points, context.settings.placement.up)
   return reference_cameras.place_reference_cameras(
-      context.dataset.cameras, points, count=count, placement=context.settings.placement,
+      context.views.cameras, points, count=count, placement=context.settings.placement,
       width=size, height=size)
 
 
