@@ -85,6 +85,7 @@ class Dataset:
 
   @property
   def views(self) -> SceneViews:
+    """The views without their pixels."""
     return SceneViews(self.cameras, self.image_names, self.scene_bounds, self.scene_kind,
                       self.world_from_source)
 
