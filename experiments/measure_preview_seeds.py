@@ -19,7 +19,6 @@ import argparse
 import collections
 import itertools
 import os
-import platform
 import shutil
 import sys
 from pathlib import Path
@@ -31,6 +30,7 @@ from signerf_jax.default_model import generated_objects
 from signerf_jax.editing import figures, sheet
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 from real_scene_edit import signerf, stacked  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -83,7 +83,7 @@ def main() -> None:
   placed = Path(args.edit) / "config.gin"
   if not placed.is_file():
     raise SystemExit(f"{placed}: no placed edit here (run experiments/real_scene_edit.py)")
-  load_at_start = os.getloadavg()
+  record = machine.record()
   cache = Path(args.out) / "compilation_cache"
   results, images = {}, []
   for prompt in args.prompts:
@@ -103,9 +103,7 @@ def main() -> None:
               "absolute RGB difference of the pairs inside and outside the inpainting mask; "
               "the object's palette colour per candidate)",
       "edit": str(Path(args.edit).resolve()), "seeds": args.seeds, "prompts": results,
-      "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                  "load_average_at_start": load_at_start,
-                  "load_average_at_end": os.getloadavg()}})
+      "machine": {**record, "load_average_at_end": os.getloadavg()}})
   files.write_image(RESULTS / "preview_seeds.png", stacked(images))
 
 
