@@ -61,11 +61,13 @@ def use_compilation_cache() -> None:
   """Keeps compiled programs between commands in JAX's persistent cache, so a preview after
   `signerf train`, or the next preview, does not compile the sampler and the renderer again (on
   stitch, 2 cores: 36 s cold, 26 s warm). JAX's own settings win: JAX_COMPILATION_CACHE_DIR
-  chooses another directory, JAX_ENABLE_COMPILATION_CACHE=false turns the cache off."""
+  chooses another directory, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS another threshold,
+  JAX_ENABLE_COMPILATION_CACHE=false turns the cache off."""
   import jax  # pylint: disable=g-import-not-at-top  (`signerf --help` stays fast without it)
   if jax.config.jax_compilation_cache_dir is None:
     cache_home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     jax.config.update("jax_compilation_cache_dir", str(cache_home / "signerf_jax" / "xla"))
+  if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
     # A preview compiles ~90 programs, most under JAX's default 1 s threshold and ~5 s together.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 

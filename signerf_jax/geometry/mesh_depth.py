@@ -69,9 +69,10 @@ class MeshDepth:
   overflow: jax.Array
 
 
-def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index,
-                            tile_size: int) -> tuple[jax.Array, jax.Array]:
-  """Undistorted OpenCV normalised coordinates (x right, y down) of every pixel-centre ray.
+def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index, tile_size: int,
+                            undistort: bool) -> tuple[jax.Array, jax.Array]:
+  """Undistorted OpenCV normalised coordinates (x right, y down) of every pixel-centre ray
+  (`undistort` False: of ideal pinholes, whatever their distortion coefficients say).
 
   Returns:
     plane: [tiles_down, tiles_across, tile_size * tile_size, 2]. The grid is padded to whole
@@ -95,10 +96,11 @@ def _tile_plane_coordinates(cameras: camera_lib.Cameras, camera_index,
     on_plane = lens.fisheye_angle(x_distorted, y_distorted,
                                         distortion) < lens.MAX_PLANE_ANGLE
   else:
-    # The Newton iterations are skipped for an ideal pinhole.
-    x, y = jax.lax.cond(jnp.any(distortion != 0),
-                        lambda: lens.undistort(x_distorted, y_distorted, distortion),
-                        lambda: (x_distorted, y_distorted))
+    x, y = x_distorted, y_distorted
+    if undistort:  # The Newton iterations are skipped for an ideal pinhole.
+      x, y = jax.lax.cond(jnp.any(distortion != 0),
+                          lambda: lens.undistort(x_distorted, y_distorted, distortion),
+                          lambda: (x_distorted, y_distorted))
     on_plane = jnp.ones_like(x, bool)
   plane = jnp.stack([x, y], -1).reshape(tiles_down, tile_size, tiles_across, tile_size, 2)
   on_plane = on_plane.reshape(tiles_down, tile_size, tiles_across, tile_size)
@@ -209,9 +211,10 @@ def _pair_depths(corners: jax.Array, triangle: jax.Array, pixel_plane: jax.Array
 
 
 def _single_camera_depth(triangles: jax.Array, num_triangles, cameras: camera_lib.Cameras,
-                         camera_index, tile_size: int, capacity: int) -> MeshDepth:
+                         camera_index, tile_size: int, capacity: int, undistort: bool
+                         ) -> MeshDepth:
   """Mesh depth for one camera; the first `num_triangles` of [F, 3, 3] `triangles` count."""
-  plane, on_plane = _tile_plane_coordinates(cameras, camera_index, tile_size)
+  plane, on_plane = _tile_plane_coordinates(cameras, camera_index, tile_size, undistort)
   corners = _camera_frame(triangles, cameras, camera_index)
   first, last = _tile_ranges(corners, plane)
   counts = _pair_counts(first, last, num_triangles)
@@ -255,9 +258,9 @@ def _single_camera_depth(triangles: jax.Array, num_triangles, cameras: camera_li
   )
 
 
-@functools.partial(jax.jit, static_argnames=("tile_size",))
+@functools.partial(jax.jit, static_argnames=("tile_size", "undistort"))
 def count_pairs(triangles: jax.Array, cameras: camera_lib.Cameras, tile_size: int = 4,
-                num_triangles=None) -> jax.Array:
+                num_triangles=None, undistort: bool = True) -> jax.Array:
   """[N] int32: the length of each camera's (triangle, tile) list, i.e. the capacity it needs.
 
   Arguments as for `mesh_depth`.
@@ -266,16 +269,16 @@ def count_pairs(triangles: jax.Array, cameras: camera_lib.Cameras, tile_size: in
   num_triangles = triangles.shape[0] if num_triangles is None else num_triangles
 
   def count(camera_index):
-    plane, _ = _tile_plane_coordinates(cameras, camera_index, tile_size)
+    plane, _ = _tile_plane_coordinates(cameras, camera_index, tile_size, undistort)
     first, last = _tile_ranges(_camera_frame(triangles, cameras, camera_index), plane)
     return jnp.sum(_pair_counts(first, last, num_triangles))
 
   return jax.lax.map(count, jnp.arange(cameras.num_cameras))
 
 
-@functools.partial(jax.jit, static_argnames=("tile_size", "capacity"))
+@functools.partial(jax.jit, static_argnames=("tile_size", "capacity", "undistort"))
 def mesh_depth(triangles: jax.Array, cameras: camera_lib.Cameras, tile_size: int = 4,
-               capacity: int = 65536, num_triangles=None) -> MeshDepth:
+               capacity: int = 65536, num_triangles=None, undistort: bool = True) -> MeshDepth:
   """Nearest-triangle depth for every camera with a fixed pair capacity (jit-compatible).
 
   Args:
@@ -285,13 +288,16 @@ def mesh_depth(triangles: jax.Array, cameras: camera_lib.Cameras, tile_size: int
     capacity: length of the (triangle, tile) list; exact where `overflow` is False.
     num_triangles: None, or an int32 scalar (traced): only the first `num_triangles` triangles
       exist, the rest is padding (so meshes padded to one size share a compilation).
+    undistort: False only where every camera is an ideal pinhole (zero distortion): the
+      undistortion is then not compiled (a third of this function's compilation; the same
+      depths).
   Returns:
     MeshDepth with leading shape [N, H, W] (`overflow`: [N]).
   """
   triangles = jnp.asarray(triangles, jnp.float32)
   num_triangles = triangles.shape[0] if num_triangles is None else num_triangles
   render = lambda index: _single_camera_depth(triangles, num_triangles, cameras, index,
-                                              tile_size, capacity)
+                                              tile_size, capacity, undistort)
   # One camera at a time bounds memory by one camera's pair list.
   return jax.lax.map(render, jnp.arange(cameras.num_cameras))
 
@@ -318,9 +324,11 @@ def render_mesh_depth(mesh: mesh_lib.Mesh | jax.Array, cameras: camera_lib.Camer
   padding = np.broadcast_to(triangles[:1], (padded_size - num_triangles, 3, 3))
   triangles = jnp.asarray(np.concatenate([triangles, padding]))
   num_triangles = jnp.int32(num_triangles)
-  needed = int(jnp.max(count_pairs(triangles, cameras, tile_size, num_triangles)))
+  # Known here, on the host: synthetic cameras (the reference views) are ideal pinholes.
+  undistort = bool(np.any(np.asarray(cameras.distortion) != 0))
+  needed = int(jnp.max(count_pairs(triangles, cameras, tile_size, num_triangles, undistort)))
   capacity = _bucket(max(needed, MINIMUM_CAPACITY))
-  return mesh_depth(triangles, cameras, tile_size, capacity, num_triangles)
+  return mesh_depth(triangles, cameras, tile_size, capacity, num_triangles, undistort)
 
 
 def _bucket(size: int) -> int:

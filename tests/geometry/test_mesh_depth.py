@@ -83,6 +83,25 @@ def test_primitives_match_trimesh_ray_casting(proxy, distortion, fisheye):
   assert_matches_trimesh(proxy, cameras)
 
 
+@pytest.mark.parametrize("distortion", [None, (-0.2, 0.05, 0.002, -0.001)],
+                         ids=["pinhole", "distorted"])
+def test_the_sizing_wrapper_undistorts_exactly_where_the_cameras_need_it(distortion):
+  """render_mesh_depth leaves the undistortion out of the program for ideal pinholes (the
+  reference views), with the same depths, and keeps it for distorted cameras."""
+  proxy = primitives.primitive_cow()
+  cameras = orbit_cameras(np.zeros(3), 2.5, distortion=distortion)
+  result = mesh_depth.render_mesh_depth(proxy, cameras)
+  expected = trimesh_distance(proxy, cameras)
+  np.testing.assert_array_equal(np.asarray(result.hit), np.isfinite(expected))
+  hit = np.isfinite(expected)
+  np.testing.assert_allclose(np.asarray(result.distance)[hit], expected[hit], rtol=1e-4)
+  if distortion is None:
+    with_undistortion = mesh_depth.mesh_depth(proxy.triangles, cameras, capacity=16384,
+                                              undistort=True)
+    np.testing.assert_array_equal(np.asarray(result.z_depth),
+                                  np.asarray(with_undistortion.z_depth))
+
+
 def test_fisheye_rays_past_90_degrees_hit_nothing_and_the_others_match_trimesh():
   """A 250-degree fisheye inside a box: the walls in front are exact, the rays behind the
   camera plane (no positive z-depth) are misses."""
