@@ -54,16 +54,16 @@ def launch(source: Path, cache: Path, *argv) -> subprocess.Popen:
                               "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.1"})
 
 
-def signerf(source: Path, cache: Path, *argv) -> None:
-  """Runs `signerf ARGV` as `launch` starts it; fails on an error."""
-  check(launch(source, cache, *argv), source)
-
-
 def check(process: subprocess.Popen, source: Path) -> None:
   """Fails unless `process` (of the code in `source`) succeeds."""
   if process.wait() != 0:
     raise SystemExit(f"{' '.join(process.args)} (PYTHONPATH={source}) failed with exit code "
                      f"{process.returncode}")
+
+
+def signerf(source: Path, cache: Path, *argv) -> None:
+  """Runs `signerf ARGV` as `launch` starts it; fails on an error."""
+  check(launch(source, cache, *argv), source)
 
 
 def cache_after_training(source: Path, work: Path, cache: Path) -> Path:
@@ -144,11 +144,10 @@ def main() -> None:
   RESULTS.mkdir(parents=True, exist_ok=True)
   files.write_json(RESULTS / f"{args.name}.json", {
       "what": "`signerf preview` on a placed edit of a trained NeRF, each run a new process with "
-              "a compilation cache that starts empty or (after_training) as `signerf train` and `signerf "
-              "place` of the scene leave it: seconds until "
-              "preview.png first appears (the first candidate sheet) and until the command ends "
-              "(every candidate); medians over the repeats, the runs of the source trees "
-              "alternating",
+              "a compilation cache that starts empty or (after_training) as `signerf train` and "
+              "`signerf place` of the scene leave it: seconds until preview.png first appears "
+              "(the first candidate sheet) and until the command ends (every candidate); "
+              "medians over the repeats, the runs of the source trees alternating",
       "after_training": args.after_training,
       "edit": str(Path(args.edit).resolve()), "prompt": PROMPT,
       "sources": {label: str(Path(source).resolve()) for label, source in sources.items()},

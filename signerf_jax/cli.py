@@ -59,8 +59,8 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
 
 def use_compilation_cache() -> None:
   """Keeps compiled programs between commands in JAX's persistent cache, so a preview after
-  `signerf train`, or the next preview, does not compile the sampler and the renderer again (on
-  stitch, 2 cores: 36 s cold, 26 s warm). JAX's own settings win: JAX_COMPILATION_CACHE_DIR
+  `signerf train`, or the next preview, does not compile the sampler and the renderer again
+  (README, "Editing a scene", has the times). JAX's own settings win: JAX_COMPILATION_CACHE_DIR
   chooses another directory, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS another threshold,
   JAX_ENABLE_COMPILATION_CACHE=false turns the cache off."""
   import jax  # pylint: disable=g-import-not-at-top  (`signerf --help` stays fast without it)
