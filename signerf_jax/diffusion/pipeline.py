@@ -313,7 +313,7 @@ def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask
     key: a PRNG key (split into one per sample) or [B] keys (sample b uses keys[b]).
     noise: instead of `key`, every random draw as arrays (see `sampler.SamplerNoise`).
     options: the generation knobs.
-    winograd_convolutions: False compiles ~6 s faster and samples ~20% slower (the shipped
+    winograd_convolutions: False compiles ~6 s faster and samples ~30% slower (the shipped
       model's sheet; `sampler.SamplerSettings`): for a program that runs once.
 
   Returns:
