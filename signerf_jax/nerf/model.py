@@ -149,9 +149,13 @@ class NerfModel:
     return 0.5 * self.scene.extent
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def init_variables(model: NerfModel, key) -> Variables:
   """Fresh variables (random fields, occupancy all unvisited; for an edit region, an untrained
-  original too, to be replaced by the original scene's variables)."""
+  original too, to be replaced by the original scene's variables).
+
+  Jitted: run eagerly, each of the initialisers' ~90 small operations compiled on its own
+  (stitch 200^2: 5.8 s eagerly, 1.9 s jitted, with an empty compilation cache)."""
   keys = jax.random.split(key, 1 + len(model.proposal_fields))
   points = jnp.full((1, 3), 0.5, jnp.float32)
   directions = jnp.array([[0.0, 0.0, 1.0]], jnp.float32)

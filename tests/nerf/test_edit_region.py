@@ -224,13 +224,20 @@ def test_precomputed_surroundings_render_as_the_merged_fields(sphere, edited, sa
   inside_origin = jax.tree.map(lambda array: array[:4], rays).replace(
       origins=jnp.tile(jnp.array([[0.3, 0.0, 0.0]]), (4, 1)))
   rays = jax.tree.map(lambda *arrays: jnp.concatenate(arrays), rays, inside_origin)
-  surroundings = nerf_model.region_surroundings(model, variables, rays)
+
+  # Jitted: eagerly, each of their operations would compile on its own (~10 s).
+  @jax.jit
+  def both_ways(variables, rays):
+    surroundings = nerf_model.region_surroundings(model, variables, rays)
+    key = jax.random.PRNGKey(0)
+    merged, _ = nerf_model.render_rays(model, variables, rays, key, training=False)
+    split, _ = nerf_model.render_rays(model, variables, rays, key, training=False,
+                                      surroundings=surroundings)
+    return surroundings, merged, split
+
+  surroundings, merged, split = both_ways(variables, rays)
   crossing = np.asarray(surroundings.t_out > surroundings.t_in)
   assert crossing.any() and (~crossing).any() and crossing[-4:].all()
-  key = jax.random.PRNGKey(0)
-  merged, _ = nerf_model.render_rays(model, variables, rays, key, training=False)
-  split, _ = nerf_model.render_rays(model, variables, rays, key, training=False,
-                                    surroundings=surroundings)
   for name in ("rgb", "accumulation"):
     np.testing.assert_allclose(split[name], merged[name], atol=2e-5, err_msg=name)
 

@@ -39,9 +39,10 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
   rays = jax.tree.map(lambda array: array[:, :4].reshape((-1,) + array.shape[2:]),
                       camera.image_rays(dataset.cameras, 0))
   for training, per_ray in [(False, 16 + 8 + 8), (True, 32 + 16 + 16)]:
-    _, aux = nerf_model.render_rays(halved, trainer.state.variables, rays, jax.random.key(0),
-                                    training=training)
-    assert int(aux["samples_evaluated"]) == per_ray * rays.shape[0]
+    # Jitted: run eagerly, each of its hundreds of operations would compile on its own (~30 s).
+    render = jax.jit(lambda variables, rays, training=training: nerf_model.render_rays(
+        halved, variables, rays, jax.random.key(0), training=training)[1]["samples_evaluated"])
+    assert int(render(trainer.state.variables, rays)) == per_ray * rays.shape[0]
   halved_metrics, _ = evaluate.evaluate(halved, trainer.state.variables, dataset.subset([0]))
   full_metrics, _ = evaluate.evaluate(dataclasses.replace(halved, capacity=dataclasses.replace(
       halved.capacity, render_sample_fraction=1.0)), trainer.state.variables, dataset.subset([0]))

@@ -186,9 +186,11 @@ def test_moving_the_proxy_in_the_panel_previewing_and_saving(viewer, browser, vi
       if attempt == 2:
         raise
   assert viewer.selection.ground_position[1:] == before.ground_position[1:]
-  # Its handle moved with it, to where the edit will put it.
+  # Its handle moves with it, to where the edit will put it (the viewer's thread sets the
+  # selection first and the handle after it: waited for, not read at once).
   _, handle_position = place.handle_pose(viewer.selection, viewer.dataset)
-  np.testing.assert_allclose(viewer.handle.position, handle_position, atol=1e-5)
+  wait_for(lambda: np.allclose(viewer.handle.position, handle_position, atol=1e-5), 10,
+           "the handle to follow the proxy")
 
   button(browser, "Preview").click()
   from selenium.webdriver.common.by import By  # pylint: disable=g-import-not-at-top
