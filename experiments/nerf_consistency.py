@@ -1,7 +1,7 @@
 """3D consistency measured on the edited NeRF: sheet propagation against independent edits.
 
-    python experiments/nerf_consistency.py [--scenes demo stitch] [--out DIR] [--results DIR]
-        [--stitch_edit EDIT] [--smoke] [--gin_file F] [--gin_param P]
+    python experiments/nerf_consistency.py [--scenes demo stitch] [--arms sheet independent ...]
+        [--out DIR] [--results DIR] [--stitch_edit EDIT] [--smoke] [--gin_file F] [--gin_param P]
 
 The paper's claim (Sec. 3 and its appendix): views updated through the reference sheet agree, so
 the NeRF fitted to them holds a solid object, while views inpainted each on its own disagree and
@@ -90,10 +90,16 @@ def scene_sweep(scene: str, out: Path, gin_files: list[str], gin_params: list[st
   return sweeps.Sweep(out, [str(placed), *gin_files], bindings + gin_params, progress, log)
 
 
-def run_scene(sweep: sweeps.Sweep) -> dict[str, Any]:
-  """Both arms of one scene: each arm's measurements, quality and seconds, and separation."""
+def chosen_arms(baselines: list[str]) -> tuple[Variant, ...]:
+  """The sheet's arm and the named baselines (`ARMS`'s names), in `ARMS`'s order."""
+  return tuple(arm for arm in ARMS if arm.name == "sheet" or arm.name in baselines)
+
+
+def run_scene(sweep: sweeps.Sweep, arms: tuple[Variant, ...] = ARMS) -> dict[str, Any]:
+  """The arms of one scene (the sheet's first): each arm's measurements, quality and seconds,
+  and whether the sheet separates from each other arm."""
   result: dict[str, Any] = {"original_nerf": sweep.train_original(), "arms": {}}
-  for arm in ARMS:
+  for arm in arms:
     summary = sweep.run("arms", arm)
     metrics = files.read_json(Path(summary["directory"]) / "evaluation" / "metrics.json")
     result["arms"][arm.name] = {"bindings": list(arm.bindings),
@@ -105,7 +111,7 @@ def run_scene(sweep: sweeps.Sweep) -> dict[str, Any]:
   result["separated"] = {arm.name: {
       key: solidity.separated(_measure(sheet, key),
                               _measure(result["arms"][arm.name]["nerf_consistency"], key))
-      for key, _, _ in MEASURES} for arm in ARMS[1:]}
+      for key, _, _ in MEASURES} for arm in arms[1:]}
   return result
 
 
@@ -131,6 +137,9 @@ def figure(results: dict[str, Any]) -> np.ndarray:
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--scenes", nargs="+", choices=("demo", "stitch"), default=["demo"])
+  parser.add_argument("--arms", nargs="+", choices=[arm.name for arm in ARMS[1:]],
+                      default=[arm.name for arm in ARMS[1:]],
+                      help="the arms compared with the sheet (which always runs)")
   parser.add_argument("--out", default="outputs/nerf_consistency", help="the edits (resumed)")
   parser.add_argument("--results", default=str(RESULTS))
   parser.add_argument("--stitch_edit", default="outputs/real_scene_edit/edit",
@@ -146,7 +155,7 @@ def main(argv=None) -> int:
     for scene in args.scenes:
       sweep = scene_sweep(scene, Path(args.out) / scene, gin_files, args.gin_param,
                           Path(args.stitch_edit), not args.quiet)
-      results[scene] = run_scene(sweep)
+      results[scene] = run_scene(sweep, chosen_arms(args.arms))
   except InputError as error:
     print(f"nerf_consistency: error: {error}", file=sys.stderr)
     return 2

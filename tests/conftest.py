@@ -42,6 +42,32 @@ def _hide_unloadable_torchvision() -> None:
 _hide_unloadable_torchvision()
 
 
+# The test folder whose modules share an expensive session fixture, kept on one worker.
+SHARED_FIXTURE_FOLDER = "tests/viewer/"
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+  """`--dist loadscope` (the README's command), with the viewer's modules as one unit.
+
+  xdist hands whole modules to the workers, so a session fixture is built once per worker that
+  runs a module using it. The viewer's three modules share a trained NeRF (`viewer/conftest.py`,
+  about 90 s of a worker's time); as one unit they build it once, not once per worker.
+  """
+  if config.getoption("dist", None) != "loadscope":
+    return None
+  from xdist.scheduler import LoadScopeScheduling  # pylint: disable=g-import-not-at-top
+
+  class SharedFixtureScheduling(LoadScopeScheduling):
+
+    def _split_scope(self, nodeid: str) -> str:
+      if nodeid.startswith(SHARED_FIXTURE_FOLDER):
+        return SHARED_FIXTURE_FOLDER
+      return super()._split_scope(nodeid)
+
+  return SharedFixtureScheduling(config, log)
+
+
 def pytest_sessionfinish(session, exitstatus):
   shutil.rmtree(SESSION_COMPILATION_CACHE, ignore_errors=True)
 

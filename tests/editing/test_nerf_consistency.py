@@ -82,3 +82,30 @@ def test_the_figure_is_drawn_whatever_the_numbers(experiment, tmp_path):
           for name in ("sheet", "independent", "reference_views")}
   image = experiment.figure({"demo": {"arms": arms}})
   assert image.ndim == 3 and image.shape[2] == 3 and np.isfinite(image).all()
+
+
+def test_a_scene_runs_the_sheet_and_the_chosen_baselines_only(experiment, tmp_path):
+  ran = []
+
+  class RecordingSweep:
+    """Writes each arm's measurements where an edit's evaluation would."""
+
+    def train_original(self):
+      return {"run": str(tmp_path / "nerf"), "seconds": 0.0}
+
+    def run(self, group, arm):
+      ran.append(arm.name)
+      fit = {"sheet": 20.0, "independent": 18.0}[arm.name]
+      summary = {"mean": fit, "interval": [fit - 0.5, fit + 0.5]}
+      measured = {"fit_psnr": summary, "solidity": {"iou": summary, "mean_opacity": summary},
+                  "correspondences": {"relative_change": -0.2, "interval": [-0.3, -0.1]}}
+      directory = tmp_path / group / arm.name
+      files.write_json(directory / "evaluation" / "metrics.json",
+                       {"nerf_consistency": measured})
+      return {"directory": str(directory), "quality": {}, "edit_seconds": 1.0}
+
+  result = experiment.run_scene(RecordingSweep(), experiment.chosen_arms(["independent"]))
+  assert ran == ["sheet", "independent"] and list(result["arms"]) == ran
+  assert result["separated"] == {"independent": {
+      "fit_psnr": True, "solidity/iou": True, "solidity/mean_opacity": True,
+      "correspondences": False}}
