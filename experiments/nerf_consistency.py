@@ -1,7 +1,8 @@
 """3D consistency measured on the edited NeRF: sheet propagation against independent edits.
 
-    python experiments/nerf_consistency.py [--scenes demo stitch] [--arms sheet independent ...]
-        [--out DIR] [--results DIR] [--stitch_edit EDIT] [--smoke] [--gin_file F] [--gin_param P]
+    python experiments/nerf_consistency.py [--scenes demo stitch]
+        [--arms independent reference_views] [--out DIR] [--results DIR] [--stitch_edit EDIT]
+        [--smoke] [--gin_file F] [--gin_param P]
 
 The paper's claim (Sec. 3 and its appendix): views updated through the reference sheet agree, so
 the NeRF fitted to them holds a solid object, while views inpainted each on its own disagree and
