@@ -96,7 +96,7 @@ def chosen_arms(baselines: list[str]) -> tuple[Variant, ...]:
   return tuple(arm for arm in ARMS if arm.name == "sheet" or arm.name in baselines)
 
 
-def run_scene(sweep: sweeps.Sweep, arms: tuple[Variant, ...] = ARMS) -> dict[str, Any]:
+def run_scene(sweep: sweeps.Sweep, arms: tuple[Variant, ...]) -> dict[str, Any]:
   """The arms of one scene (the sheet's first): each arm's measurements, quality and seconds,
   and whether the sheet separates from each other arm."""
   result: dict[str, Any] = {"original_nerf": sweep.train_original(), "arms": {}}
