@@ -26,7 +26,7 @@ from signerf_jax.diffusion import weights
 TINY_OPTIONS = pipeline_lib.GenerationOptions(num_inference_steps=2, guidance_scale=3.0)
 
 TINY_ARCHITECTURE = model_lib.Architecture(
-    vae_block_out_channels=(8, 16), vae_norm_groups=4, unet_block_out_channels=(16, 32),
+    vae_block_out_channels=(8, 16), vae_norm_groups=4, unet_block_out_channels=(16,),
     attention_heads=2, norm_groups=8, conditioning_embedding_channels=(8, 16),
     text_hidden_size=16, text_layers=1, text_heads=2, text_intermediate_size=32)
 WORDS = ["a red cow", "a blue striped teapot", "a green box"]
