@@ -82,10 +82,12 @@ def figure(held_out, renders) -> np.ndarray:
 
 
 def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path,
-                      config: train.TrainConfig, rules: capacity.CapacityRules
-                      ) -> dict[str, Any]:
+                      config: train.TrainConfig, rules: capacity.CapacityRules,
+                      supersampling: int | None = None) -> dict[str, Any]:
   """Trains `name` (sized by `rules`) with the schedule spanning max(seconds), evaluating at
-  each time; held-out views (`figure`) go to `figure_path`."""
+  each time; held-out views (`figure`) go to `figure_path`. With `supersampling`, the held-out
+  views are also rendered at the last time with that many rays per pixel side
+  ("held_out_supersampled", and the seconds that rendering took)."""
   seconds = sorted(seconds)
   training, held_out = load_scene(name)
   model = training_run.build_model(training, rules=rules)
@@ -101,6 +103,11 @@ def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path,
                                                        training)
       point.update(held_out=report["held_out"], train=report["train"],
                    generalisation_gap_db=report["generalisation_gap_db"])
+      if supersampling is not None:
+        rendering_started = time.perf_counter()
+        point["held_out_supersampled"], _ = evaluate.evaluate(
+            model, trainer.state.variables, held_out, supersampling=supersampling)
+        point["supersampled_eval_seconds"] = time.perf_counter() - rendering_started
     else:
       # The training views are rendered only at the end: at 400^2 they would double the time
       # spent evaluating.
@@ -109,9 +116,13 @@ def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path,
     curve.append(point)
     held_out_metrics = point["held_out"]
     train_psnr = f", train {point['train']['psnr']:.2f} dB" if "train" in point else ""
+    supersampled = (f", {supersampling}x{supersampling} rays a pixel "
+                    f"{point['held_out_supersampled']['psnr']:.2f} dB"
+                    if "held_out_supersampled" in point else "")
     print(f"[{name}] {point['seconds']:.0f} s, step {point['step']}: held-out "
-          f"{held_out_metrics['psnr']:.2f} dB / SSIM {held_out_metrics['ssim']:.3f}{train_psnr}, "
-          f"near-camera weight {held_out_metrics['near_camera_weight']:.4f}", flush=True)
+          f"{held_out_metrics['psnr']:.2f} dB / SSIM {held_out_metrics['ssim']:.3f}{train_psnr}"
+          f"{supersampled}, near-camera weight {held_out_metrics['near_camera_weight']:.4f}",
+          flush=True)
   files.write_image(figure_path, figure(held_out, renders))
   rays = trainer.step * model.capacity.rays_per_batch
   return {
@@ -133,7 +144,8 @@ def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path,
 def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
                   seconds: dict[str, Sequence[float]] | None = None,
                   machine_shared: bool = False,
-                  output_stem: str = "bench_nerf") -> dict[str, Any]:
+                  output_stem: str = "bench_nerf",
+                  supersampling: dict[str, int] | None = None) -> dict[str, Any]:
   """Runs every scene.
 
   Args:
@@ -142,8 +154,10 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
     machine_shared: record whether other jobs shared the CPU (timings are then pessimistic).
     output_stem: results/<stem>_<scene>.png holds each scene's held-out views, and
       results/<stem>.partial.json the result so far after every scene.
+    supersampling: per scene, rays per pixel side of a second held-out evaluation at the last
+      time (`render.render_cameras`; anti-aliasing at that many squared times the rendering).
   """
-  seconds = dict(seconds or {})
+  seconds, supersampling = dict(seconds or {}), dict(supersampling or {})
   config, rules = configs.build(train.TrainConfig), configs.build(capacity.CapacityRules)
   result: dict[str, Any] = {
       "machine": machine.record(processor=platform.processor(),
@@ -154,7 +168,7 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
   for name in scenes:
     result["scenes"][name] = train_and_measure(name, seconds.get(name, (60, 120, 300, 600)),
                                                RESULTS / f"{output_stem}_{name}.png", config,
-                                               rules)
+                                               rules, supersampling.get(name))
     files.write_json(RESULTS / f"{output_stem}.partial.json", result)
   result["load_average_at_end"] = os.getloadavg()
   return result

@@ -251,12 +251,39 @@ def refine_rays(rays: Rays, adjustments) -> Rays:
                       directions=jnp.einsum("...ij,...j->...i", rotation, rays.directions))
 
 
-def image_rays(cameras: Cameras, camera_index) -> Rays:
-  """All pixel-centre rays of one camera, shape [height, width]."""
-  rows, columns = jnp.meshgrid(jnp.arange(cameras.height, dtype=jnp.float32) + 0.5,
-                               jnp.arange(cameras.width, dtype=jnp.float32) + 0.5, indexing="ij")
+def image_rays(cameras: Cameras, camera_index, subpixel=(0.5, 0.5)) -> Rays:
+  """One ray per pixel of one camera, shape [height, width].
+
+  Args:
+    subpixel: (x, y) where each ray crosses its pixel, in pixels from the pixel's top-left
+      corner; (0.5, 0.5) is the centre.
+  """
+  rows, columns = jnp.meshgrid(jnp.arange(cameras.height, dtype=jnp.float32) + subpixel[1],
+                               jnp.arange(cameras.width, dtype=jnp.float32) + subpixel[0],
+                               indexing="ij")
   indices = jnp.full(rows.shape, camera_index, jnp.int32)
   return pixel_rays(cameras, indices, columns, rows)
+
+
+def subpixel_positions(samples_per_side: int) -> np.ndarray:
+  """[samples_per_side^2, 2] float32 (x, y): the centres of a samples_per_side x
+  samples_per_side grid of sub-pixels, in pixels from the pixel's top-left corner, row by row
+  (1: the pixel's centre, (0.5, 0.5))."""
+  steps = (np.arange(samples_per_side, dtype=np.float32) + 0.5) / samples_per_side
+  x, y = np.meshgrid(steps, steps, indexing="xy")
+  return np.stack([x.ravel(), y.ravel()], axis=-1)
+
+
+def subpixel_rays(cameras: Cameras, camera_indices, rows, columns, samples_per_side: int
+                  ) -> Rays:
+  """The rays through the `subpixel_positions` of pixels [B] (integer rows and columns), pixel
+  by pixel: shape [B * samples_per_side^2], pixel i's rays at i * samples_per_side^2 onwards."""
+  positions = jnp.asarray(subpixel_positions(samples_per_side))
+  count = positions.shape[0]
+  repeat = lambda array: jnp.repeat(jnp.asarray(array), count, axis=0)
+  offsets = jnp.tile(positions, (jnp.shape(camera_indices)[0], 1))
+  return pixel_rays(cameras, repeat(camera_indices), repeat(columns) + offsets[:, 0],
+                    repeat(rows) + offsets[:, 1])
 
 
 def random_rays(key: jax.Array, cameras: Cameras, batch_size: int):

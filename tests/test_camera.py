@@ -220,6 +220,32 @@ def test_image_rays_centre_looks_forward_and_pixel_grid_is_row_major():
   assert float(centre.cos_to_optical_axis) == pytest.approx(1.0)
 
 
+@pytest.mark.parametrize("per_side", [1, 2, 3])
+def test_subpixel_rays_cross_a_grid_inside_each_pixel_pixel_by_pixel(per_side):
+  """Pixel i's per_side^2 rays come at i * per_side^2 onwards, row by row through the centres
+  of a per_side x per_side grid of sub-pixels (whose mean is the pixel's centre); image_rays at
+  one of those positions crosses every pixel there."""
+  cameras = make_cameras()
+  positions = camera.subpixel_positions(per_side)
+  assert positions.shape == (per_side**2, 2)
+  np.testing.assert_allclose(positions.mean(axis=0), [0.5, 0.5], atol=1e-6)
+  assert np.all((positions > 0) & (positions < 1))
+  indices, rows, columns = np.array([2, 0, 1]), np.array([0, 47, 13]), np.array([63, 0, 30])
+  rays = camera.subpixel_rays(cameras, indices, rows, columns, per_side)
+  assert rays.shape == (3 * per_side**2,)
+  for pixel in range(3):
+    for position_index, (x, y) in enumerate(positions):
+      ray = jax.tree.map(lambda array: array[pixel * per_side**2 + position_index], rays)
+      projected, _ = camera.project(cameras.take([indices[pixel]]),
+                                    ray.origins + 2.0 * ray.directions)
+      np.testing.assert_allclose(projected[0], [columns[pixel] + x, rows[pixel] + y], atol=2e-3)
+      assert int(ray.camera_indices) == indices[pixel]
+  x, y = positions[-1]
+  whole = camera.image_rays(cameras, 2, (float(x), float(y)))
+  pixels, _ = camera.project(cameras.take([2]), whole.origins + whole.directions)
+  np.testing.assert_allclose(pixels[0, 0, 63], [63 + x, y], atol=2e-3)
+
+
 def test_points_behind_the_camera_have_negative_depth():
   cameras = make_cameras()
   behind = cameras.positions[0] - 2.0 * cameras.forward[0]

@@ -44,7 +44,7 @@ from signerf_jax import camera, checkpoints
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import lpips
-from signerf_jax.nerf import losses, occupancy, train, training_run
+from signerf_jax.nerf import losses, occupancy, train, training_data, training_run
 from signerf_jax.nerf import model as nerf_model
 
 
@@ -91,7 +91,7 @@ def random_patches(key, cameras: camera.Cameras, count: int, size: int):
 
 def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
                   loss_settings: FinetuneLosses, state: train.TrainState,
-                  data: train.TrainingData, progress, lpips_params
+                  data: training_data.TrainingData, progress, lpips_params
                   ) -> tuple[train.TrainState, dict]:
   """One fine-tuning step (pure; see the module docstring for the loss)."""
   ray_key, render_key = jax.random.split(jax.random.fold_in(state.key, state.step))
@@ -102,7 +102,7 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     rays, pixels = rays.reshape(-1), tuple(array.reshape(-1) for array in pixels)
     surroundings = None  # A patch reaches beyond the region's pixels: rendered in full.
   else:
-    rays, pixels, surroundings = train.sample_rays(ray_key, data,
+    rays, pixels, surroundings = training_data.sample_rays(ray_key, data,
                                                    model.capacity.rays_per_batch)
   target = data.images[pixels]
   pixel_weight = data.pixel_weights[pixels]
@@ -234,7 +234,7 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
                        field="FinetuneConfig.patch_size")
   run_dir = Path(run_dir)
   run_dir.mkdir(parents=True, exist_ok=True)
-  trainer = FinetuneTrainer(model, config, train.TrainingData.from_dataset(dataset),
+  trainer = FinetuneTrainer(model, config, training_data.TrainingData.from_dataset(dataset),
                             train.init_state(model, config, init_variables),
                             loss_settings=loss_settings, lpips_params=lpips_params,
                             editable_cells=None if edited_bounds is None

@@ -137,6 +137,12 @@ class Capacity:
       are switched on one after another (`encoding.level_weights_at`); 0: all from the start.
     pose_refinement: train a pose correction per training camera (`camera.refine_rays`);
       held-out views keep their given poses.
+    pixel_samples: rays per pixel side. A pixel is the mean colour of the pixel_samples^2 rays
+      through a grid of points inside it (`camera.subpixel_positions`), as a photo's pixel is
+      the mean of the light over its area: training compares that mean with the photo (an
+      edit region's training and an edit's fine-tuning, `editing.finetune`, keep one ray a
+      pixel) and rendering averages as many rays (`render.render_cameras`' default; the
+      viewer renders one). 1: one ray through the pixel's centre.
   """
 
   contract: bool
@@ -164,6 +170,7 @@ class Capacity:
   coarse_to_fine: float = 0.0
   pose_refinement: bool = False
   perspective_warp: bool = False
+  pixel_samples: int = 1
 
   @classmethod
   def from_json(cls, value: Mapping[str, Any]) -> "Capacity":
@@ -178,6 +185,11 @@ class Capacity:
       return self.proposal_samples, self.samples_per_ray
     scaled = lambda count: 8 * max(1, round(count * self.render_sample_fraction / 8))
     return tuple(map(scaled, self.proposal_samples)), scaled(self.samples_per_ray)
+
+
+# Captures with fewer training views than this are sparse (object captures of 10-15 views):
+# `CapacityRules.pixel_samples`.
+SPARSE_VIEWS = 16
 
 
 def _round_up(value: float, multiple: int) -> int:
@@ -215,6 +227,15 @@ class CapacityRules(validation.CheckedFields):
       one (the rules since) they cost stitch 200^2 0.49 dB (26.53 against 27.03 over its 22
       held-out views, 1.35x faster; results/bench_nerf_render_stitch_fractions.json), so
       rendering takes every sample unless asked (the viewer's speed against its quality).
+    pixel_samples: `Capacity.pixel_samples`; None derives it: 2 for sparse captures (fewer
+      than `SPARSE_VIEWS` training views), 1 otherwise. Between so few views the field is
+      unconstrained, and one ray through each pixel's centre fits a photo's pixel (the mean
+      over its area) with whatever lies between the rays: lego 100^2 with 12 views, 300 s,
+      27.26 / 27.49 dB (two seeds) rendered 2 x 2 rays a pixel, 25.97 / 26.23 through pixel
+      centres, against 26.88 / 26.43 dB trained one ray a pixel
+      (results/lego_12_pixel_model.json; the benchmark's 27.28 dB:
+      results/bench_nerf_pixel_samples.json). Lego's 100 views gain nothing (31.63 against
+      31.62 dB rendered 2 x 2).
     overrides: `Capacity` fields to force after deriving, e.g. a fixed large configuration for
       comparison; None for none. (A mapping makes the rules unhashable: they are never a static
       jit argument, only the `Capacity` they produce is.)
@@ -232,6 +253,7 @@ class CapacityRules(validation.CheckedFields):
   sample_groups: PositiveInt = 8
   appearance_embedding: bool = False
   render_sample_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 1.0
+  pixel_samples: PositiveInt | None = None
   overrides: Mapping[str, Any] | None = None
 
   def __post_init__(self):
@@ -328,6 +350,7 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
       # scaling would damp (fern: 22.2 dB with it, 23.0 without, at 300 s).
       near_gradient_scaling=contract,
       perspective_warp=scene.perspective is not None,
+      pixel_samples=rules.pixel_samples or (2 if scene.num_images < SPARSE_VIEWS else 1),
   )
   return dataclasses.replace(capacity, **dict(rules.overrides or {}))
 
@@ -363,4 +386,7 @@ def describe(capacity: Capacity) -> str:
     parts.append(f"coarse-to-fine grid levels over {capacity.coarse_to_fine:.0%} of training")
   if capacity.pose_refinement:
     parts.append("camera pose refinement")
+  if capacity.pixel_samples > 1:
+    parts.append(f"{capacity.pixel_samples} x {capacity.pixel_samples} rays a pixel in training "
+                 "and rendering (a sparse capture)")
   return "model: " + ", ".join(parts)

@@ -61,7 +61,8 @@ def scene_radius(model: nerf_model.NerfModel, cameras) -> float:
 
 
 def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset, chunk_size: int = 4096,
-             lpips_params=None, near_camera_fraction: float = NEAR_CAMERA_FRACTION
+             lpips_params=None, near_camera_fraction: float = NEAR_CAMERA_FRACTION,
+             supersampling: int | None = None
              ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
   """Renders every view of `dataset` and compares it with the images (and depths).
 
@@ -69,16 +70,21 @@ def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset, chunk_siz
     lpips_params: VGG-LPIPS weights (`metrics.lpips.load_lpips_params`); None reports no LPIPS.
     near_camera_fraction: floaters are render weight nearer to the camera than this fraction of
       `scene_radius`.
+    supersampling: rays per pixel side, averaged (`render.render_cameras`; None: the model's
+      `Capacity.pixel_samples`).
   Returns:
     metrics: psnr, ssim, lpips (means over views; psnr of each view, then averaged, as NeRF
       papers do; lpips None without weights), depth_mae and depth_rmse (z-depth, scene units,
       over pixels with ground truth > 0; None without ground truth), near_camera_weight (the
       share of all render weight nearer than near_camera_fraction * scene_radius to the
-      camera: near-camera floaters), num_views.
+      camera: near-camera floaters), num_views, supersampling (the rays per pixel side used).
     renders: `render.render_cameras`' outputs for the views.
   """
   near_distance = near_camera_fraction * scene_radius(model, dataset.cameras)
-  renders = render.render_cameras(model, variables, dataset.cameras, chunk_size, near_distance)
+  if supersampling is None:
+    supersampling = model.capacity.pixel_samples
+  renders = render.render_cameras(model, variables, dataset.cameras, chunk_size, near_distance,
+                                  supersampling=supersampling)
   psnrs = [float(image_metrics.psnr_jit(renders["rgb"][i], dataset.images[i]))
            for i in range(dataset.num_images)]
   ssims = [float(image_metrics.ssim_jit(renders["rgb"][i], dataset.images[i]))
@@ -93,7 +99,7 @@ def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset, chunk_siz
       "depth_mae": None, "depth_rmse": None,
       "near_camera_weight": float(np.sum(renders["near_weight"]) /
                                   max(np.sum(renders["accumulation"]), 1e-12)),
-      "num_views": dataset.num_images}
+      "num_views": dataset.num_images, "supersampling": supersampling}
   if dataset.depths is not None:
     known = dataset.depths > 0
     if not np.any(known):
@@ -114,7 +120,8 @@ def training_views(dataset: Dataset, count: int = TRAIN_VIEWS_EVALUATED) -> Data
 
 def generalisation_report(model: nerf_model.NerfModel, variables, held_out: Dataset,
                           training: Dataset, chunk_size: int = 4096, lpips_params=None,
-                          renders_dir: str | os.PathLike | None = None
+                          renders_dir: str | os.PathLike | None = None,
+                          supersampling: int | None = None
                           ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
   """Held-out metrics, train-view metrics and the gap between them.
 
@@ -123,14 +130,16 @@ def generalisation_report(model: nerf_model.NerfModel, variables, held_out: Data
     training: the training views (`training_views` of them are rendered).
     renders_dir: if given, the held-out renders go there (`render.write_renders`: colour,
       depth as EXR and as a picture, accumulation).
+    supersampling: rays per pixel side, averaged (`render.render_cameras`), for both.
   Returns:
     {"held_out": metrics, "train": metrics, "generalisation_gap_db": train - held-out PSNR,
      "appearance": what held-out views use for the per-image appearance code}, and the
     held-out renders (`render.render_cameras`).
   """
-  held_out_metrics, renders = evaluate(model, variables, held_out, chunk_size, lpips_params)
+  held_out_metrics, renders = evaluate(model, variables, held_out, chunk_size, lpips_params,
+                                       supersampling=supersampling)
   train_metrics, _ = evaluate(model, variables, training_views(training), chunk_size,
-                              lpips_params)
+                              lpips_params, supersampling=supersampling)
   if renders_dir is not None:
     render.write_renders(renders_dir, held_out.image_names, renders)
   return {

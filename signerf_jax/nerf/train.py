@@ -5,11 +5,7 @@ gradients, the update, the occupancy grid's refresh). `training_run` runs these 
 Each step's randomness is `fold_in(state.key, state.step)`, so nothing depends on how a run was
 split into bursts or resumed.
 
-A model with an edit region trains only on the pixels whose rays cross the region (`RegionRays`):
-elsewhere it renders the frozen original exactly, so those pixels have no gradient, and spending
-the batch on them would waste most of it (an object filling a tenth of the frames leaves nine
-tenths of a uniform batch idle). The original's render around the region is computed once for
-each of these rays, so a step evaluates the trained field alone.
+The images a step trains on and how it draws its batch of rays from them: `training_data`.
 
 Training is data-parallel over a device mesh (default: every device, `parallel.device_mesh`):
 each step's ray batch is split over the devices, the state and the images are replicated, and
@@ -26,17 +22,16 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from flax import struct
 from jax.sharding import Mesh
 
 from signerf_jax import camera, parallel, validation
-from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import losses
+from signerf_jax.nerf import losses, training_data
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.encoding import level_weights_at
+from signerf_jax.nerf.training_data import TrainingData
 from signerf_jax.validation import NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
 
 
@@ -94,126 +89,6 @@ class TrainState:
   variables: dict[str, Any]
   optimizer_state: optax.OptState
   key: jax.Array  # the run's base key; step keys are fold_in(key, step)
-
-
-@struct.dataclass
-class RegionRays:
-  """The training pixels whose rays cross a model's edit region, with the frozen original's
-  render around the region on each (`with_region_rays`).
-
-  Attributes:
-    pixels: [P] int32 flat indices into the images' [N, H, W].
-    surroundings: `nerf_model.RegionSurroundings` of shape [P].
-  """
-
-  pixels: jax.Array
-  surroundings: nerf_model.RegionSurroundings
-
-
-@struct.dataclass
-class TrainingData:
-  """Training images on device (not donated; the same every step).
-
-  Attributes:
-    images: [N, H, W, 3] float32.
-    cameras: N cameras.
-    pixel_weights: [N, H, W] float32 per-pixel loss weights (1 = normal, 0 = ignore).
-    alphas: None or [N, H, W] float32 opacity of RGBA images (`Dataset.alphas`).
-    region: for a model with an edit region, the only pixels a step samples (`RegionRays`).
-  """
-
-  images: jax.Array
-  cameras: camera.Cameras
-  pixel_weights: jax.Array
-  alphas: jax.Array | None = None
-  region: RegionRays | None = None
-
-  @classmethod
-  def from_dataset(cls, dataset: Dataset, pixel_weights=None) -> "TrainingData":
-    weights = np.ones(dataset.images.shape[:3], np.float32)
-    if dataset.masks is not None:
-      weights = weights * dataset.masks
-    if pixel_weights is not None:
-      pixel_weights = np.asarray(pixel_weights, np.float32)
-      if pixel_weights.shape != weights.shape:
-        raise InputError(f"pixel weights have shape {pixel_weights.shape}, the images "
-                         f"{weights.shape}", dataset.root or None, "pixel_weights")
-      weights = weights * pixel_weights
-    alphas = None if dataset.alphas is None else jnp.asarray(dataset.alphas, jnp.float32)
-    return cls(jnp.asarray(dataset.images, jnp.float32),
-               jax.tree.map(jnp.asarray, dataset.cameras), jnp.asarray(weights), alphas)
-
-
-def _pixel_rays(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
-                image_shape: tuple[int, int, int], flat_pixels) -> camera.Rays:
-  """The rays through `flat_pixels` [C] (indices into [N, H, W]) as the original NeRF saw them
-  (its pose corrections applied)."""
-  index, row, column = jnp.unravel_index(flat_pixels, image_shape)
-  rays = camera.pixel_rays(cameras, index, column + 0.5, row + 0.5)
-  if model.capacity.pose_refinement:
-    rays = camera.refine_rays(rays, variables["original"]["params"][nerf_model.POSE_ADJUSTMENTS])
-  return rays
-
-
-@functools.partial(jax.jit, static_argnums=(0, 3))
-def _crossing_chunk(model, variables, cameras, image_shape, flat_pixels):
-  return nerf_model.crosses_region(
-      model, _pixel_rays(model, variables, cameras, image_shape, flat_pixels))
-
-
-@functools.partial(jax.jit, static_argnums=(0, 3))
-def _surroundings_chunk(model, variables, cameras, image_shape, flat_pixels):
-  return nerf_model.region_surroundings(
-      model, variables, _pixel_rays(model, variables, cameras, image_shape, flat_pixels))
-
-
-def _in_chunks(function, flat_pixels: np.ndarray, chunk_size: int):
-  """`function(chunk)` over fixed-size chunks of `flat_pixels` [P] (the last one padded, so one
-  compilation serves all), concatenated into numpy arrays [P, ...]."""
-  outputs = []
-  for start in range(0, len(flat_pixels), chunk_size):
-    chunk = flat_pixels[start:start + chunk_size]
-    result = function(np.pad(chunk, (0, chunk_size - len(chunk)), mode="edge"))
-    outputs.append(jax.tree.map(lambda array: np.asarray(array)[:len(chunk)], result))
-  return jax.tree.map(lambda *arrays: np.concatenate(arrays), *outputs)
-
-
-def with_region_rays(data: TrainingData, model: nerf_model.NerfModel, variables,
-                     chunk_size: int = 8192) -> TrainingData:
-  """`data` with its `RegionRays` when `model` has an edit region (`variables` hold the
-  original's): every pixel of non-zero weight whose ray crosses the region, with the original's
-  render around the region (the only rays rendered: a box test finds them first)."""
-  if model.edit_region is None or data.region is not None:
-    return data
-  image_shape = tuple(data.pixel_weights.shape)
-  weighted = np.flatnonzero(np.asarray(data.pixel_weights).reshape(-1) > 0).astype(np.int32)
-  inputs = (model, variables, data.cameras, image_shape)
-  crossing = (_in_chunks(functools.partial(_crossing_chunk, *inputs), weighted, 16 * chunk_size)
-              if len(weighted) else np.zeros(0, bool))
-  pixels = weighted[crossing]
-  if not len(pixels):
-    raise InputError(f"no training pixel sees the edit region {model.edit_region}",
-                     field="edit_region")
-  surroundings = _in_chunks(functools.partial(_surroundings_chunk, *inputs), pixels, chunk_size)
-  return data.replace(region=RegionRays(jnp.asarray(pixels), jax.tree.map(jnp.asarray,
-                                                                          surroundings)))
-
-
-def sample_rays(key, data: TrainingData, batch_size: int):
-  """A uniform random batch of training pixels' rays: over every pixel, or over the region's.
-
-  Returns:
-    rays: Rays [batch_size].
-    pixels: (camera_index, row, column), each [batch_size] int32.
-    surroundings: the region's `RegionSurroundings` [batch_size], or None.
-  """
-  if data.region is None:
-    rays, pixels = camera.random_rays(key, data.cameras, batch_size)
-    return rays, pixels, None
-  choice = jax.random.randint(key, (batch_size,), 0, data.region.pixels.shape[0])
-  pixels = jnp.unravel_index(data.region.pixels[choice], data.pixel_weights.shape)
-  rays = camera.pixel_rays(data.cameras, pixels[0], pixels[2] + 0.5, pixels[1] + 0.5)
-  return rays, pixels, jax.tree.map(lambda array: array[choice], data.region.surroundings)
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
@@ -290,19 +165,8 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
   """
   ray_key, render_key, background_key = jax.random.split(
       jax.random.fold_in(state.key, state.step), 3)
-  rays, (index, row, column), surroundings = sample_rays(ray_key, data,
-                                                        model.capacity.rays_per_batch)
-  target = data.images[index, row, column]
-  pixel_weight = data.pixel_weights[index, row, column]
-  background = None
-  if data.alphas is not None and model.background is not None:
-    # instant-NGP's random backgrounds: where the photo is transparent the target takes a new
-    # colour each step, so empty space must stay empty. With the constant background alone,
-    # density of that colour in front of it would fit the photos equally well (floaters that
-    # hide the object in other views: the sparse-view failure).
-    background = jax.random.uniform(background_key, target.shape)
-    transparency = (1.0 - data.alphas[index, row, column])[:, None]
-    target = target + transparency * (background - model.background)
+  rays, target, pixel_weight, background, surroundings, rays_per_pixel = training_data.step_batch(
+      model, data, ray_key, background_key)
   if mesh is not None:
     rays, target, pixel_weight, background, surroundings = jax.lax.with_sharding_constraint(
         (rays, target, pixel_weight, background, surroundings), parallel.batch_sharded(mesh))
@@ -311,14 +175,15 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
         model.capacity.num_levels, progress, model.capacity.coarse_to_fine)})
 
   def loss_fn(params):
-    refined = rays
-    if model.capacity.pose_refinement:
-      refined = camera.refine_rays(rays, params[nerf_model.POSE_ADJUSTMENTS])
+    refined = (camera.refine_rays(rays, params[nerf_model.POSE_ADJUSTMENTS])
+               if model.capacity.pose_refinement else rays)
     outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, refined,
                                           render_key, training=True, background=background,
                                           surroundings=surroundings)
-    ray_weights = pixel_weight * outputs["ray_complete"]
-    mse = losses.weighted_mse(outputs["rgb"], target, ray_weights)
+    ray_weights = jnp.repeat(pixel_weight, rays_per_pixel) * outputs["ray_complete"]
+    pixel_rgb = outputs["rgb"].reshape(-1, rays_per_pixel, 3).mean(axis=1)
+    pixel_complete = outputs["ray_complete"].reshape(-1, rays_per_pixel).all(axis=1)
+    mse = losses.weighted_mse(pixel_rgb, target, pixel_weight * pixel_complete)
     loss = mse + config.distortion_loss_weight * losses.distortion_loss(
         aux["edges"], aux["weights"], model.scene.extent, ray_weights)
     if aux["proposals"]:

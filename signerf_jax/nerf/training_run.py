@@ -23,8 +23,8 @@ from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import Capacity, CapacityRules, SceneInfo, derive_capacity
-from signerf_jax.nerf.train import (TrainConfig, TrainingData, TrainState, init_state,
-                                    make_train_step, with_region_rays)
+from signerf_jax.nerf.train import TrainConfig, TrainState, init_state, make_train_step
+from signerf_jax.nerf.training_data import TrainingData, with_region_rays
 
 MODEL_FILE = "model.json"
 

@@ -115,13 +115,15 @@ def test_the_edited_dataset_keeps_unmasked_pixels_and_records_its_provenance(fin
 
 
 def region_hits(model, cameras) -> np.ndarray:
-  """[N, H, W] bool: the pixels whose rays cross the model's edit region."""
-  hits = []
+  """[N, H, W] bool: the pixels some of whose rays (`Capacity.pixel_samples`^2 of them, as the
+  model renders) cross its edit region."""
+  hits = np.zeros((cameras.num_cameras, cameras.height, cameras.width), bool)
   for index in range(cameras.num_cameras):
-    rays = camera.image_rays(cameras, index)
-    hits.append(np.asarray(sampling.intersect_aabb(
-        rays.origins, rays.directions, np.asarray(model.edit_region, np.float32))[2]))
-  return np.stack(hits)
+    for position in camera.subpixel_positions(model.capacity.pixel_samples):
+      rays = camera.image_rays(cameras, index, tuple(map(float, position)))
+      hits[index] |= np.asarray(sampling.intersect_aabb(
+          rays.origins, rays.directions, np.asarray(model.edit_region, np.float32))[2])
+  return hits
 
 
 def test_the_edited_nerf_changes_only_the_grown_selection_box(finished_edit):

@@ -162,6 +162,21 @@ def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
   assert "occupancy-grid sampling" in capacity.describe(synthetic)
 
 
+@pytest.mark.parametrize("views, expected", [(1, 2), (12, 2), (15, 2), (16, 1), (100, 1)])
+def test_sparse_captures_model_a_pixel_as_several_rays_and_say_so(views, expected):
+  scene = dataclasses.replace(LEGO_100, num_images=views)
+  derived = capacity.derive_capacity(scene)
+  assert derived.pixel_samples == expected
+  assert ("rays a pixel" in capacity.describe(derived)) == (expected > 1)
+  for pinned in (1, 3):
+    assert capacity.derive_capacity(scene, capacity.CapacityRules(
+        pixel_samples=pinned)).pixel_samples == pinned
+  # Runs saved before the field existed read as one ray a pixel.
+  saved = dataclasses.asdict(derived)
+  del saved["pixel_samples"]
+  assert capacity.Capacity.from_json(saved).pixel_samples == 1
+
+
 def test_forward_facing_grid_resolves_one_pixel_angle_per_finest_cell():
   derived = capacity.derive_capacity(FORWARD_FACING)
   focal = LEGO_100.camera_distance / LEGO_100.pixel_footprint  # 138.9 px

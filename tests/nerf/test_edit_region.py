@@ -20,7 +20,8 @@ from signerf_jax import camera
 from signerf_jax.editing import finetune
 from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import capacity, evaluate, render, sampling, train, training_run, volume
+from signerf_jax.nerf import (capacity, evaluate, render, sampling, train, training_data,
+                              training_run, volume)
 from signerf_jax.nerf import model as nerf_model
 
 BACKGROUND = jnp.array([0.2, 0.4, 0.6])
@@ -246,12 +247,12 @@ def test_an_edit_region_trains_only_on_the_pixels_whose_rays_cross_it(sphere, ed
   model, variables = edited[2].model, edited[2].state.variables
   weights = np.ones(sphere.images.shape[:3], np.float32)
   weights[1] = 0.0
-  data = train.TrainingData.from_dataset(sphere, weights)
-  region = train.with_region_rays(data, model, variables, chunk_size=1000).region
+  data = training_data.TrainingData.from_dataset(sphere, weights)
+  region = training_data.with_region_rays(data, model, variables, chunk_size=1000).region
   crossing = np.stack([region_hits(sphere.cameras, view) for view in range(len(weights))])
   crossing[1] = False
   np.testing.assert_array_equal(np.sort(np.asarray(region.pixels)), np.flatnonzero(crossing))
-  _, (index, row, column), surroundings = train.sample_rays(jax.random.PRNGKey(3),
+  _, (index, row, column), surroundings = training_data.sample_rays(jax.random.PRNGKey(3),
                                                             data.replace(region=region), 512)
   assert crossing[index, row, column].all()
   assert surroundings.t_in.shape == (512,)
@@ -260,7 +261,7 @@ def test_an_edit_region_trains_only_on_the_pixels_whose_rays_cross_it(sphere, ed
 def test_an_edit_region_no_training_pixel_sees_is_an_error(sphere, edited):
   model = dataclasses.replace(edited[2].model, edit_region=((2.0, 2.0, 2.0), (2.5, 2.5, 2.5)))
   with pytest.raises(InputError, match="no training pixel sees the edit region"):
-    train.with_region_rays(train.TrainingData.from_dataset(sphere), model,
+    training_data.with_region_rays(training_data.TrainingData.from_dataset(sphere), model,
                            edited[2].state.variables)
 
 

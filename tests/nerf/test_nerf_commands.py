@@ -40,6 +40,12 @@ def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
   assert files.read_json(run / "eval.json") == result
   # Every held-out view's render and depth map, as pictures.
   assert len(list((run / "eval").glob("*.depth.png"))) == held_out["num_views"]
+  # 14 training views: a sparse capture, evaluated as trained, 2 x 2 rays a pixel; one ray
+  # through each pixel's centre when asked.
+  assert cli.main(["eval", "--run", str(run), "--supersampling", "1"]) == 0
+  centre = json.loads(capsys.readouterr().out)["held_out"]
+  assert held_out["supersampling"] == 2 and centre["supersampling"] == 1
+  assert centre["psnr"] != held_out["psnr"]
 
   out = tmp_path / "renders"
   assert cli.main(["render", "--run", str(run), "--out", str(out), "--video",

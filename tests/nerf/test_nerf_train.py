@@ -6,7 +6,7 @@ import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
 from signerf_jax import checkpoints
-from signerf_jax.nerf import evaluate, render, train, training_run
+from signerf_jax.nerf import evaluate, render, train, training_data, training_run
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.training_loop import TrainingDiverged
 
@@ -196,13 +196,35 @@ def test_selection_weight_is_the_opacity_inside_the_box(sphere, trained):
   assert np.mean(half[0][misses]) < 0.1
 
 
+def test_a_sparse_capture_trains_and_renders_each_pixel_as_the_mean_of_four_rays(sphere):
+  """Eight views: the derived model fits each photo's pixel with the mean of 2 x 2 rays inside
+  it, learns the sphere that way, and renders (and is evaluated) 2 x 2 rays a pixel."""
+  sparse = sphere.subset(list(range(0, 16, 2)))
+  model = training_run.build_model(sparse)
+  assert model.capacity.pixel_samples == 2
+  model = dataclasses.replace(model, capacity=dataclasses.replace(
+      model.capacity, rays_per_batch=1024, samples_per_batch=8192, mlp_width=32))
+  trainer = training_run.make_trainer(sparse, model=model, config=SMALL_CONFIG)
+  views = sphere.subset([1, 6])  # Between the training views.
+  before, _ = evaluate.evaluate(model, trainer.state.variables, views)
+  trainer.run(until_step=100, progress=False)
+  after, _ = evaluate.evaluate(model, trainer.state.variables, views)
+  assert after["supersampling"] == 2
+  assert after["psnr"] > before["psnr"] + 6, (before, after)
+  centre, _ = evaluate.evaluate(model, trainer.state.variables, views, supersampling=1)
+  assert centre["supersampling"] == 1 and centre["psnr"] != after["psnr"]
+  with count_compilations() as compiled:
+    trainer.run(until_step=102, progress=False)
+  assert not compiled
+
+
 def test_the_opacity_prior_is_part_of_the_training_loss_when_weighted(sphere):
   model = small_model(sphere)
   config = dataclasses.replace(SMALL_CONFIG, opacity_entropy_weight=0.5)
   state = train.init_state(model, config)
   # Jitted: eagerly, each operation of the step and its gradient would compile on its own.
   step = jax.jit(train.train_step, static_argnums=(0, 1))
-  _, statistics = step(model, config, state, train.TrainingData.from_dataset(sphere),
+  _, statistics = step(model, config, state, training_data.TrainingData.from_dataset(sphere),
                        np.float32(0.5))
   entropy = float(statistics["opacity_entropy"])
   assert 0 < entropy <= np.log(2) + 1e-6

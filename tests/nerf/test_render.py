@@ -1,6 +1,7 @@
 """Rendering: marching only through the occupied cells' box renders as the whole march; a subset
-of pixels renders as those pixels of the whole images; written renders hold the median depth, and
-the depth picture is finite and ordered for any depth map."""
+of pixels renders as those pixels of the whole images; a supersampled pixel is the mean of the rays
+through a grid inside it; written renders hold the median depth, and the depth picture is finite
+and ordered for any depth map."""
 
 import dataclasses
 
@@ -140,3 +141,49 @@ def test_rendering_some_pixels_gives_those_pixels_of_the_whole_render_and_zeros_
     assert not np.any(image[~chosen]), name
   with pytest.raises(InputError, match="pixels"):
     render.render_cameras(model, variables, cameras, 256, pixels=chosen[:2])
+
+
+@pytest.mark.parametrize("supersampling", [1, 2, 3])
+@pytest.mark.parametrize("pixels", ["every_pixel", "off_centre_patch"])
+def test_a_supersampled_pixel_is_the_mean_of_the_rays_through_a_grid_inside_it(
+    sphere, supersampling, pixels):
+  """supersampling N renders each pixel as the mean of the N x N rays through the centres of an
+  N x N grid of sub-pixels (1: the pixel's centre ray), for every output, also when only some
+  pixels are rendered; other supersamplings reuse the compilation."""
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  cameras = sphere.cameras.take([0, 5])
+  chosen = np.ones((2, cameras.height, cameras.width), bool)
+  if pixels == "off_centre_patch":
+    chosen[:] = False
+    chosen[1, 2:7, -5:] = True
+  rendered = render.render_cameras(model, variables, cameras, 256, pixels=chosen,
+                                   supersampling=supersampling)
+  rows, columns = np.meshgrid(np.arange(cameras.height), np.arange(cameras.width), indexing="ij")
+  expected = {name: np.zeros_like(image) for name, image in rendered.items()}
+  for y in range(supersampling):
+    for x in range(supersampling):
+      for view in range(2):  # Rays through sub-pixel centres, built independently of render.
+        rays = camera.pixel_rays(cameras, np.full(rows.shape, view),
+                                 columns + (x + 0.5) / supersampling,
+                                 rows + (y + 0.5) / supersampling)
+        for name, image in render.render_rays_chunked(model, variables, rays, 256).items():
+          expected[name][view] += image / supersampling**2
+  for name, image in rendered.items():
+    np.testing.assert_allclose(image[chosen], expected[name][chosen], atol=1e-5, err_msg=name)
+    assert not np.any(image[~chosen]), name
+  centre = render.render_cameras(model, variables, cameras, 256, pixels=chosen)
+  difference = np.abs(rendered["rgb"] - centre["rgb"]).max()
+  assert (difference == 0) == (supersampling == 1)  # The sub-pixel rays see other colours.
+  with count_compilations() as compiled:
+    render.render_cameras(model, variables, cameras, 256, pixels=chosen, supersampling=4)
+  assert not compiled
+
+
+@pytest.mark.parametrize("supersampling", [0, -2, 1.5, True, "2"])
+def test_supersampling_must_be_a_positive_integer(sphere, supersampling):
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  with pytest.raises(InputError, match="supersampling"):
+    render.render_cameras(model, variables, sphere.cameras.take([0]), 256,
+                          supersampling=supersampling)

@@ -33,10 +33,19 @@ def add_options(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--lpips", default="", help="VGG-LPIPS weights (safetensors) for LPIPS")
   parser.add_argument("--chunk_size", type=argument_type(PositiveInt), default=4096,
                       help="rays rendered at once")
+  add_supersampling(parser)
+
+
+def add_supersampling(parser: argparse.ArgumentParser) -> None:
+  """--supersampling, shared by `signerf eval` and `signerf render`."""
+  parser.add_argument("--supersampling", type=argument_type(PositiveInt), default=None,
+                      help="render each pixel as the mean of N x N rays inside it "
+                      "(anti-aliasing, N^2 times the rendering time); 1: one ray through its "
+                      "centre; default: as the model was trained (its pixel_samples)")
 
 
 def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights: str = "",
-                 chunk_size: int = 4096) -> dict[str, Any]:
+                 chunk_size: int = 4096, supersampling: int | None = None) -> dict[str, Any]:
   """Evaluates a run on `split`; writes RUN/eval.json and, for the held-out split, the renders
   and depth maps to RUN/eval/. Returns what eval.json holds."""
   run_dir = Path(run_dir)
@@ -50,10 +59,11 @@ def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights:
   if split == "eval":
     result, _ = evaluate.generalisation_report(
         trained.model, trained.variables, dataset, load_recorded_dataset(
-            trained.description, "train"), chunk_size, lpips_params, run_dir / RENDERS_FOLDER)
+            trained.description, "train"), chunk_size, lpips_params, run_dir / RENDERS_FOLDER,
+        supersampling)
   else:
     result, _ = evaluate.evaluate(trained.model, trained.variables, dataset, chunk_size,
-                                  lpips_params)
+                                  lpips_params, supersampling=supersampling)
   result = {**result, "seconds_trained": trained.seconds_trained, "step": trained.step,
             "split": split}
   files.write_json(run_dir / EVAL_FILE, result)
@@ -61,5 +71,6 @@ def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights:
 
 
 def run(args: argparse.Namespace) -> int:
-  print(json.dumps(evaluate_run(args.run, args.split, args.lpips, args.chunk_size)))
+  print(json.dumps(evaluate_run(args.run, args.split, args.lpips, args.chunk_size,
+                                args.supersampling)))
   return 0

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from signerf_jax.nerf import evaluate, render
 from signerf_jax.nerf.commands import load_recorded_dataset
+from signerf_jax.nerf.commands.evaluate import add_supersampling
 from signerf_jax.validation import PositiveInt, argument_type
 
 
@@ -20,6 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="video length in frames")
   parser.add_argument("--chunk_size", type=argument_type(PositiveInt), default=4096,
                       help="rays rendered at once")
+  add_supersampling(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,13 +29,13 @@ def run(args: argparse.Namespace) -> int:
   out = Path(args.out) if args.out else Path(args.run) / "renders"
   dataset = load_recorded_dataset(trained.description, args.split)
   outputs = render.render_cameras(trained.model, trained.variables, dataset.cameras,
-                                  args.chunk_size)
+                                  args.chunk_size, supersampling=args.supersampling)
   render.write_renders(out / args.split, dataset.image_names, outputs)
   message = f"{dataset.num_images} {args.split} views in {out / args.split}"
   if args.video:
     path_cameras = render.orbit_cameras(trained.model, dataset.cameras, args.frames)
     frames = render.render_cameras(trained.model, trained.variables, path_cameras,
-                                   args.chunk_size)["rgb"]
+                                   args.chunk_size, supersampling=args.supersampling)["rgb"]
     message += f", video {render.write_video(out / 'video.mp4', frames)}"
   print(f"signerf render: {message}")
   return 0
