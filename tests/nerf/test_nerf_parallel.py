@@ -1,5 +1,5 @@
-"""Data-parallel training: the same steps on 1, 2, 4 and 8 devices, independent sample groups, and
-the checks on batch sizes and multi-host arguments."""
+"""Data-parallel training: the same steps on 1, 2, 4 and 8 devices (one ray a pixel, and 2 x 2),
+independent sample groups, and the checks on batch sizes and multi-host arguments."""
 
 import dataclasses
 import os
@@ -56,6 +56,14 @@ MULTI_DEVICE_TRAINING = textwrap.dedent("""
       with count_compilations() as compiled:
         trainer.run(until_step=STEPS + 2, progress=False)
       results[f"compilations_{count}"] = len(compiled)
+    # 2 x 2 rays a pixel: each pixel's rays are averaged before the loss, across the shards.
+    sparse = dataclasses.replace(model, capacity=dataclasses.replace(model.capacity,
+                                                                     pixel_samples=2))
+    for count in DEVICE_COUNTS:
+      trainer = training_run.make_trainer(sphere, model=sparse, config=CONFIG,
+                                          mesh=parallel.device_mesh(jax.devices()[:count]))
+      results[f"pixel_samples_losses_{count}"] = [
+          trainer.run(until_step=step, progress=False)["loss"] for step in range(1, STEPS + 1)]
     step_fn, _ = train._jitted_steps(model, CONFIG, mesh)
     program = step_fn.lower(trainer.state, trainer.data, jnp.float32(0)).compile().as_text()
     results.update(all_reduces=program.count("all-reduce("),
@@ -86,6 +94,9 @@ def test_two_four_and_eight_devices_train_like_one(tmp_path):
     assert int(runs[f"compilations_{count}"]) == 0
     np.testing.assert_allclose(runs[f"losses_{count}"], runs["losses_1"], rtol=1e-5,
                                err_msg=f"{count} devices")
+    np.testing.assert_allclose(runs[f"pixel_samples_losses_{count}"],
+                               runs["pixel_samples_losses_1"], rtol=1e-5,
+                               err_msg=f"2 x 2 rays a pixel, {count} devices")
     for name in names:
       np.testing.assert_allclose(runs[name.replace("_1_", f"_{count}_")], runs[name],
                                  rtol=1e-4, atol=1e-6, err_msg=f"{name}, {count} devices")
