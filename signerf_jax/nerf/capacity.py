@@ -227,15 +227,16 @@ class CapacityRules(validation.CheckedFields):
       one (the rules since) they cost stitch 200^2 0.49 dB (26.53 against 27.03 over its 22
       held-out views, 1.35x faster; results/bench_nerf_render_stitch_fractions.json), so
       rendering takes every sample unless asked (the viewer's speed against its quality).
-    pixel_samples: `Capacity.pixel_samples`; None derives it: 2 for sparse captures (fewer
-      than `SPARSE_VIEWS` training views), 1 otherwise. Between so few views the field is
+    pixel_samples: `Capacity.pixel_samples`; None derives it: 2 for sparse bounded captures
+      (fewer than `SPARSE_VIEWS` training views), 1 otherwise. Between so few views the field is
       unconstrained, and one ray through each pixel's centre fits a photo's pixel (the mean
       over its area) with whatever lies between the rays: lego 100^2 with 12 views, 300 s,
       27.26 / 27.49 dB (two seeds) rendered 2 x 2 rays a pixel, 25.97 / 26.23 through pixel
       centres, against 26.88 / 26.43 dB trained one ray a pixel
       (results/lego_12_pixel_model.json; the benchmark's 27.28 dB:
       results/bench_nerf_pixel_samples.json). Lego's 100 views gain nothing (31.63 against
-      31.62 dB rendered 2 x 2).
+      31.62 dB rendered 2 x 2), and a sparse real 360-degree capture loses: stitch 200^2 with
+      13 of its views, 300 s, 16.63 dB against 19.07 (results/stitch_13_pixel_model.json).
     overrides: `Capacity` fields to force after deriving, e.g. a fixed large configuration for
       comparison; None for none. (A mapping makes the rules unhashable: they are never a static
       jit argument, only the `Capacity` they produce is.)
@@ -350,7 +351,8 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
       # scaling would damp (fern: 22.2 dB with it, 23.0 without, at 300 s).
       near_gradient_scaling=contract,
       perspective_warp=scene.perspective is not None,
-      pixel_samples=rules.pixel_samples or (2 if scene.num_images < SPARSE_VIEWS else 1),
+      pixel_samples=rules.pixel_samples or (2 if bounded and scene.num_images < SPARSE_VIEWS
+                                            else 1),
   )
   return dataclasses.replace(capacity, **dict(rules.overrides or {}))
 
@@ -388,5 +390,5 @@ def describe(capacity: Capacity) -> str:
     parts.append("camera pose refinement")
   if capacity.pixel_samples > 1:
     parts.append(f"{capacity.pixel_samples} x {capacity.pixel_samples} rays a pixel in training "
-                 "and rendering (a sparse capture)")
+                 "and rendering (a sparse bounded capture)")
   return "model: " + ", ".join(parts)

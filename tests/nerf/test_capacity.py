@@ -171,6 +171,10 @@ def test_sparse_captures_model_a_pixel_as_several_rays_and_say_so(views, expecte
   for pinned in (1, 3):
     assert capacity.derive_capacity(scene, capacity.CapacityRules(
         pixel_samples=pinned)).pixel_samples == pinned
+  # Not for unbounded or forward-facing captures (measured worse on a real 360-degree one).
+  for kind in ("unbounded", "forward_facing"):
+    assert capacity.derive_capacity(dataclasses.replace(
+        scene, kind=kind, background_color=None)).pixel_samples == 1
   # Runs saved before the field existed read as one ray a pixel.
   saved = dataclasses.asdict(derived)
   del saved["pixel_samples"]
