@@ -256,7 +256,8 @@ def image_rays(cameras: Cameras, camera_index, subpixel=(0.5, 0.5)) -> Rays:
 
   Args:
     subpixel: (x, y) where each ray crosses its pixel, in pixels from the pixel's top-left
-      corner; (0.5, 0.5) is the centre.
+      corner (a pair or a [2] array, e.g. a row of `subpixel_positions`); (0.5, 0.5) is the
+      centre.
   """
   rows, columns = jnp.meshgrid(jnp.arange(cameras.height, dtype=jnp.float32) + subpixel[1],
                                jnp.arange(cameras.width, dtype=jnp.float32) + subpixel[0],

@@ -145,7 +145,7 @@ def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Camer
   if isinstance(supersampling, bool) or not isinstance(supersampling, (int, np.integer)) or (
       supersampling < 1):
     raise InputError(f"must be a positive integer, got {supersampling!r}", field="supersampling")
-  positions = [tuple(map(float, xy)) for xy in camera.subpixel_positions(supersampling)]
+  positions = camera.subpixel_positions(supersampling)
   shape = (cameras.num_cameras, cameras.height, cameras.width)
   if pixels is None:
     pixels = np.ones(shape, bool)

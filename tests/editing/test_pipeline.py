@@ -120,7 +120,7 @@ def region_hits(model, cameras) -> np.ndarray:
   hits = np.zeros((cameras.num_cameras, cameras.height, cameras.width), bool)
   for index in range(cameras.num_cameras):
     for position in camera.subpixel_positions(model.capacity.pixel_samples):
-      rays = camera.image_rays(cameras, index, tuple(map(float, position)))
+      rays = camera.image_rays(cameras, index, position)
       hits[index] |= np.asarray(sampling.intersect_aabb(
           rays.origins, rays.directions, np.asarray(model.edit_region, np.float32))[2])
   return hits
