@@ -11,7 +11,7 @@ For each run (a `signerf train` directory):
     compiles); rays/s, field samples per ray and per second (every network evaluation: the
     proposal networks' too, and with the occupancy sampler only the occupied samples), and the
     views' PSNR; with `--render_sample_fraction`, also at each of those fractions of the
-    proposal sampler's samples (`Capacity.render_sample_fraction`), side by side; with
+    radiance field's samples (`Capacity.render_sample_fraction`), side by side; with
     `--whole_march N`, N times in turn with and without the occupancy sampler's short march
     (`ray_samples.render_march`; without it every ray marches through the whole scene box, as
     before), in the same process, so that a noisy machine slows both alike;

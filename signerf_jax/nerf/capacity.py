@@ -127,8 +127,9 @@ class Capacity:
       of the device count lets each device evaluate only its own rays' samples.
     proposal_samples: intervals per ray for each proposal network (proposal sampler).
     samples_per_ray: intervals per ray for the radiance field (proposal sampler).
-    render_sample_fraction: rendering (not training) takes this fraction of the proposal
-      sampler's intervals per ray (`sample_counts`; see `CapacityRules`).
+    render_sample_fraction: rendering (not training) takes this fraction of the radiance
+      field's intervals per ray; the proposal networks keep all of theirs (`sample_counts`;
+      see `CapacityRules`).
     proposal_finest_resolution, proposal_log2_table_size: the proposal networks' grids.
     near_gradient_scaling: scale each sample's gradients by its squared distance from the
       camera, up to the cameras' distance to the scene ("Floaters No More";
@@ -179,12 +180,14 @@ class Capacity:
     return cls(**value)
 
   def sample_counts(self, training: bool) -> tuple[tuple[int, ...], int]:
-    """(intervals per ray of each proposal network, of the field) for training or rendering,
-    rendering's `render_sample_fraction` of training's (multiples of 8, at least 8)."""
+    """(intervals per ray of each proposal network, of the field) for training or rendering:
+    rendering takes `render_sample_fraction` of the field's (a multiple of 4, at least 4) and
+    every proposal interval, which places the field's samples (a field sample costs about seven
+    proposal samples; `CapacityRules.render_sample_fraction`)."""
     if training or self.render_sample_fraction == 1.0:
       return self.proposal_samples, self.samples_per_ray
-    scaled = lambda count: 8 * max(1, round(count * self.render_sample_fraction / 8))
-    return tuple(map(scaled, self.proposal_samples)), scaled(self.samples_per_ray)
+    return self.proposal_samples, 4 * max(1, round(
+        self.samples_per_ray * self.render_sample_fraction / 4))
 
 
 # Captures with fewer training views than this are sparse (object captures of 10-15 views):
@@ -221,12 +224,14 @@ class CapacityRules(validation.CheckedFields):
       mean code, which is no training view's own: at 600 s the codes cost fern 0.3 dB (25.4
       against 25.7 dB) and stitch 200^2 0.6 dB (26.3 against 26.9), so they are off unless
       asked for (a capture whose exposure varies a lot may still want them).
-    render_sample_fraction: the share of the proposal sampler's intervals per ray rendering
-      takes (1: render as trained). With two proposal networks two thirds rendered stitch 1.40x
-      and fern 1.36x faster for 0.04 / 0.05 dB (results/bench_nerf_render_samples.json); with
-      one (the rules since) they cost stitch 200^2 0.49 dB (26.53 against 27.03 over its 22
-      held-out views, 1.35x faster; results/bench_nerf_render_stitch_fractions.json), so
-      rendering takes every sample unless asked (the viewer's speed against its quality).
+    render_sample_fraction: the share of the radiance field's intervals per ray rendering
+      takes (1: render as trained); the proposal networks keep theirs. Scaling both cost stitch
+      200^2 0.49 dB at two thirds (26.53 against 27.03 dB, 1.35x faster;
+      results/bench_nerf_render_stitch_fractions.json); the field's alone, over the same 22
+      held-out views of a 300-s run, 2/3, 1/2 and 1/3 render 1.19x, 1.55x and 1.77x faster for
+      0.12, 0.38 and 1.27 dB (results/bench_render_quality.json). Rendering takes every sample
+      unless asked; the viewer's moving-camera frames take a third
+      (`viewer.progressive.MOVING_SAMPLE_FRACTION`).
     pixel_samples: `Capacity.pixel_samples`; None derives it: 2 for sparse bounded captures
       (fewer than `SPARSE_VIEWS` training views), 1 otherwise. Between so few views the field is
       unconstrained, and one ray through each pixel's centre fits a photo's pixel (the mean

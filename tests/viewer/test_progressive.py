@@ -1,12 +1,16 @@
 """Progressive rendering: coarse first, the same pixels as rendering the camera directly,
 abandoned as soon as a newer view is asked for, and no recompilation for a new view."""
 
+import dataclasses
 import threading
 
+import jax
 import numpy as np
 import pytest
 
-from signerf_jax.nerf import evaluate, render
+from analytic_scene import sphere_dataset
+from signerf_jax.nerf import capacity, evaluate, render
+from signerf_jax.nerf import model as nerf_model
 from signerf_jax.viewer import progressive
 from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
 
@@ -31,6 +35,30 @@ def test_frames_come_coarse_first_with_the_pixels_of_a_direct_render(trained):
                                  supersampling=1)
   np.testing.assert_allclose(frames[1].rgb, direct["rgb"][0], atol=1e-6)
   np.testing.assert_allclose(frames[1].depth, direct["depth"][0], atol=1e-5)
+
+
+def test_frames_before_the_finest_take_a_third_of_the_field_samples():
+  dataset = dataclasses.replace(sphere_dataset(), scene_kind="unbounded", background_color=None)
+  scene = capacity.SceneInfo.from_dataset(dataset)
+  model = nerf_model.NerfModel(scene, dataclasses.replace(
+      capacity.derive_capacity(scene), proposal_samples=(16,), samples_per_ray=12, mlp_width=16))
+  variables = nerf_model.init_variables(model, jax.random.key(0))
+  pose = ViewPose((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -2.5), np.pi / 3, 1.0)
+  frames = list(progressive.render_progressively(model, variables, pose, lambda: True,
+                                                 heights=(8, 16), chunk_size=128))
+
+  def direct(fraction, height):
+    rendering = dataclasses.replace(model, capacity=dataclasses.replace(
+        model.capacity, render_sample_fraction=fraction))
+    rendered = render.render_cameras(rendering, variables, cameras_for_pose(pose, height))
+    return rendered["rgb"][0], rendered["depth"][0]
+
+  assert model.capacity.sample_counts(training=False) == ((16,), 12)
+  for frame, expected in [(frames[0], direct(1 / 3, 8)),  # 16 > 4 samples a ray.
+                          (frames[1], direct(1.0, 16))]:  # As the model says: 16 > 12.
+    np.testing.assert_allclose(frame.rgb, expected[0], atol=1e-6)
+    np.testing.assert_allclose(frame.depth, expected[1], rtol=1e-5)
+  assert np.abs(frames[0].depth - direct(1.0, 8)[1]).max() > 1e-3
 
 
 def test_a_frame_is_abandoned_between_chunks_when_the_view_changes(trained):
