@@ -26,9 +26,9 @@ HEIGHTS = (64, 128, 256)
 CHUNK_SIZE = 4096
 # Frames before the finest, what a moving camera sees, render this fraction of the radiance
 # field's samples (proposal sampler, `Capacity.render_sample_fraction`); the finest renders as
-# the model says. On stitch 200 px (a 300-s run) a third of the field's samples renders 1.77x
-# the rays/s of every sample for 1.3 dB less, 2.2x the rays/s of the renderer before at 1.1 dB
-# more (experiments/results/bench_render_quality.json).
+# the model says. On stitch 200 px (300-s runs) a third of the field's samples renders 1.8x
+# the rays/s of every sample for 1.3 dB less, 2.2-2.4x the rays/s of the renderer before at
+# 1.1-1.4 dB more (experiments/results/bench_render_quality.json).
 MOVING_SAMPLE_FRACTION = 1 / 3
 
 
