@@ -10,6 +10,7 @@ import pytest
 from signerf_jax import configs
 from signerf_jax.data import synthetic
 from signerf_jax.editing import demo
+from signerf_jax.geometry import masks
 
 
 @pytest.fixture(autouse=True)
@@ -46,3 +47,16 @@ def test_the_demo_proxy_is_the_primitive_cow(tmp_path):
   bindings = demo.edit_bindings(tmp_path / "scene", scene, demo.DemoSettings(), "a red cow",
                                 str(tmp_path / "model"))
   assert "SelectionConfig.proxy = 'primitive:cow'" in bindings
+
+
+def test_the_demo_masks_grow_the_proxy_silhouette_by_one_pixel_of_its_images():
+  """At the demo's 64 px a wider mask lets the shipped model paint the cow larger than the proxy
+  and differently from view to view: the retrained object becomes a fog (gin_configs/demo.gin
+  has the measurements). The radius is given at 512 px (`geometry.masks.REFERENCE_SIZE`)."""
+  configs.parse_gin(["demo"])
+  size = gin.query_parameter("synthetic_cameras.image_size")
+  point = np.zeros((size, size), bool)
+  point[size // 2, size // 2] = True
+  grown = masks.dilate_and_feather(point, radius=gin.query_parameter(
+      "SelectionConfig.dilation_radius"))
+  assert int(np.count_nonzero(grown)) == 5  # The pixel and its four neighbours: 1 px.
