@@ -3,7 +3,8 @@
     python experiments/eval_default_model.py [--model DIR] [--data DIR] [--output JSON] \
         [--gin_file eval_default_model] [--gin_param 'default_model_evaluation.num_singles = 16']
 
-Measures prompt adherence, shape adherence over ControlNet scales, colour consistency of sheets,
+Measures prompt adherence, shape adherence over ControlNet scales (in box masks, and in the
+pipeline's proxy masks: whether the control steers the shape), colour consistency of sheets,
 independent views and slot updates, and seconds per generation call
 (`signerf_jax.default_model.evaluation`, whose docstring defines each measure), on the "eval"
 split of the dataset. Writes
@@ -113,12 +114,21 @@ def print_summary(result: dict) -> None:
   print(f"  (not a gate)    with the pipeline's proxy masks: mean IoU "
         f"{per_scale(proxy['mean_iou'])} (ceiling {proxy['segmentation_ceiling_iou']:.3f}); "
         f"precision {per_scale(proxy['pooled_precision'])}; recall "
-        f"{per_scale(proxy['pooled_recall'])}")
+        f"{per_scale(proxy['pooled_recall'])}; found by the caption's hue "
+        f"{per_scale(proxy['by_caption_hue']['mean_iou'])} (ceiling "
+        f"{proxy['by_caption_hue']['segmentation_ceiling_iou']:.3f})")
   by_hue = shape["by_caption_hue"]
   print(f"  (not a gate)    found by the caption's hue ({by_hue['samples']} views): "
         + ", ".join(f"{scale:g}: {iou:.3f}" for scale, iou in
                     zip(shape["controlnet_scales"], by_hue["mean_iou"]))
         + f" (ceiling {by_hue['segmentation_ceiling_iou']:.3f})")
+  control = gates["control_steers_shape"]
+  print(f"control (proxy)   {verdict('control_steers_shape')}  in the proxy masks, found by the "
+        f"caption's hue: IoU at 1 {control['by_caption_hue']['iou_at_full_scale']:.3f} (>= "
+        f"{control['iou_threshold']}), rise from 0 "
+        f"{control['by_caption_hue']['rise_from_scale_0']:.3f} (>= {control['rise_threshold']}); "
+        f"by difference {control['by_difference']['iou_at_full_scale']:.3f}, rise "
+        f"{control['by_difference']['rise_from_scale_0']:.3f}")
   agreement = consistency["agreement"]
   print(f"consistency       {verdict('consistency')}  colour agreement over "
         f"{consistency['sheets']} sheets: sheet {agreement['sheet']:.3f}, slot update "
@@ -169,6 +179,10 @@ def main(argv=None) -> int:
   gates = evaluation.quality_gates(single_measures["prompt_adherence"]["share"],
                                    shape["mean_iou"], shape["controlnet_scales"],
                                    consistency["agreement"], thresholds)
+  proxy = shape["with_proxy_masks"]
+  gates["control_steers_shape"] = evaluation.control_gate(
+      proxy["by_caption_hue"]["mean_iou"], proxy["mean_iou"], shape["controlnet_scales"],
+      thresholds)
   result = {
       "model": str(args.model), "data": str(args.data), "split": "eval", "gates": gates,
       **single_measures, "consistency": consistency,

@@ -25,7 +25,12 @@ sample's caption, starting from noise (`evaluation_generation`):
    tile (5 pairs). The mean distance between the objects' mean RGB colours over the same pairs
    is reported beside it. The gate: the sheet's and the slot's agreement each exceed the
    independent views' by at least a margin (`evaluation_consistency`).
-4. Time per generation call (`evaluation_generation.CallTimer`), compilation apart.
+4. The control steers the shape (issue 19): the single views of 2 inpainted under the
+   pipeline's own proxy masks instead (the silhouette dilated and feathered as `SelectionConfig`
+   does), the object found by its caption's hue (views naming a chromatic colour), which does
+   not count the ground repainted around it. The gate: IoU at scale 1 >= a threshold and a rise
+   from scale 0 >= another (`control_gate`).
+5. Time per generation call (`evaluation_generation.CallTimer`), compilation apart.
 
 The generated object is found by its difference from the VAE round trip of the object-free view
 (`generated_objects`, whose docstring says how and why).
@@ -112,12 +117,17 @@ class QualityGates:
       (sampling noise), and scale 1 must beat scale 0 by more than it.
     min_agreement_margin: how much more often sheet tiles (and slot against sheet) must agree
       in colour than independently generated views ("far better").
+    min_proxy_shape_iou, min_control_rise: gate 4 (issue 19: the control must matter), in the
+      pipeline's proxy masks: the mean IoU of the object found by its caption's hue at ControlNet
+      scale 1, and how much it must rise from scale 0.
   """
 
   min_color_adherence: float = 0.9
   min_shape_iou: float = 0.8
   rising_tolerance: float = 0.02
   min_agreement_margin: float = 0.3
+  min_proxy_shape_iou: float = 0.75
+  min_control_rise: float = 0.15
 
 
 def quality_gates(color_adherence: float, mean_ious: Sequence[float], scales: Sequence[float],
@@ -144,3 +154,23 @@ def quality_gates(color_adherence: float, mean_ious: Sequence[float], scales: Se
                       "threshold": gates.min_agreement_margin,
                       "passed": bool(min(margins.values()) >= gates.min_agreement_margin)},
   }
+
+
+def control_gate(hue_ious: Sequence[float], difference_ious: Sequence[float],
+                 scales: Sequence[float], gates: QualityGates) -> dict:
+  """Gate 4, whether the ControlNet steers the shape inside the pipeline's proxy masks: pass or
+  fail on the mean IoU per scale of `scales` (ascending, from 0, including FULL_SCALE) of the
+  objects found by their caption's hue (`hue_ious`), which counts only the object; the same of
+  the difference segmentation (`difference_ious`), which also counts the ground repainted around
+  it, stands beside it."""
+  if scales[0] != 0:
+    raise InputError(f"the rise is measured from ControlNet scale 0, got scales {list(scales)}",
+                     field="default_model_evaluation.controlnet_scales")
+  full = list(scales).index(FULL_SCALE)
+  measure = lambda ious: {"iou_at_full_scale": ious[full],
+                          "rise_from_scale_0": ious[full] - ious[0]}
+  by_hue = measure(hue_ious)
+  return {"by_caption_hue": by_hue, "by_difference": measure(difference_ious),
+          "iou_threshold": gates.min_proxy_shape_iou, "rise_threshold": gates.min_control_rise,
+          "passed": bool(by_hue["iou_at_full_scale"] >= gates.min_proxy_shape_iou
+                         and by_hue["rise_from_scale_0"] >= gates.min_control_rise)}

@@ -10,8 +10,9 @@ renders (the IoU a perfect generator would reach: `segmentation_ceiling_iou`; fo
 ground pixels off by more than the threshold), the IoU with the pipeline's own proxy masks
 (`with_proxy_masks`: the silhouette dilated and feathered as `SelectionConfig` does for a proxy
 by default, about 3 pixels at 64; the paper inpaints the visible proxy, "further dilated", while
-the gate's boxes leave the whole shape to the depth), and with the object found by its caption's
-hue (`generated_objects.segment_by_hue`, views whose caption names a chromatic colour).
+the gate's boxes leave the whole shape to the depth), and, in both kinds of mask, with the object
+found by its caption's hue (`generated_objects.segment_by_hue`, views whose caption names a
+chromatic colour), which does not count the repainted ground around the object.
 """
 
 from __future__ import annotations
@@ -126,10 +127,11 @@ def _segmentation_ceiling(singles: SingleViews, inpainting_masks: np.ndarray,
 
 
 def _by_caption_hue(generated: list[np.ndarray], singles: SingleViews,
-                    settings: EvaluationSettings) -> dict:
-  """Shape adherence with the objects found by their caption's hue, over the views whose caption
-  names a chromatic colour: "mean_iou" per scale and its "segmentation_ceiling_iou" (NaN
-  without such views)."""
+                    inpainting_masks: np.ndarray, settings: EvaluationSettings) -> dict:
+  """Shape adherence with the objects found by their caption's hue inside `inpainting_masks`
+  ([S, H, W], those `generated` was inpainted under), over the views whose caption names a
+  chromatic colour: "mean_iou" per scale and its "segmentation_ceiling_iou" (NaN without such
+  views)."""
   named_colors = [captions_lib.parse_caption(caption).color for caption in singles.captions]
   hue_views = [index for index, color in enumerate(named_colors)
                if color in colors.CHROMATIC_COLORS]
@@ -137,7 +139,7 @@ def _by_caption_hue(generated: list[np.ndarray], singles: SingleViews,
   def hue_iou(images: np.ndarray) -> float:
     if not hue_views:
       return float("nan")
-    found = generated_objects.segment_by_hue(images[hue_views], singles.masks[hue_views],
+    found = generated_objects.segment_by_hue(images[hue_views], inpainting_masks[hue_views],
                                              [named_colors[index] for index in hue_views],
                                              settings.min_component_pixels)
     return float(np.mean(silhouettes_lib.silhouette_iou(found, singles.silhouettes[hue_views])))
@@ -190,7 +192,8 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
   proxy_masks = np.asarray(masks_lib.dilate_and_feather(
       singles.silhouettes, radius=settings.proxy_mask_dilation,
       feather=settings.proxy_mask_feather))
-  _, _, with_proxy_masks = _sweep(generator, singles, proxy_masks, settings, timer)
+  proxy_generated, _, with_proxy_masks = _sweep(generator, singles, proxy_masks, settings,
+                                                timer)
   with_proxy_masks.pop("per_view")
   full = list(settings.controlnet_scales).index(FULL_SCALE)
   kinds = {kind: views.view_kinds[:, 0] == code for code, kind in enumerate(samples.VIEW_KINDS)}
@@ -206,6 +209,8 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
           "with_proxy_masks": {
               "dilation": settings.proxy_mask_dilation, "feather": settings.proxy_mask_feather,
               **with_proxy_masks,
-              "segmentation_ceiling_iou": _segmentation_ceiling(singles, proxy_masks, settings)},
-          "by_caption_hue": _by_caption_hue(generated, singles, settings)},
+              "segmentation_ceiling_iou": _segmentation_ceiling(singles, proxy_masks, settings),
+              "by_caption_hue": _by_caption_hue(proxy_generated, singles, proxy_masks,
+                                                settings)},
+          "by_caption_hue": _by_caption_hue(generated, singles, singles.masks, settings)},
   }, {"generated": np.stack(generated), "objects": np.stack(objects)}

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from signerf_jax.default_model import (batches, captions, evaluation, evaluation_generation,
-                                       generated_objects, samples)
+                                       evaluation_singles, generated_objects, samples)
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import silhouettes
 
@@ -76,6 +76,26 @@ def test_hue_segmentation_finds_the_named_colour_and_ignores_repainted_ground():
   by_difference = generated_objects.segment_objects(generated[None], striped_ground()[None],
                                                     mask[None], 0.1, 4)
   assert by_difference[0, 5, 17] and not found[0, 5, 17]
+
+
+def test_hue_shape_adherence_looks_only_inside_the_masks_the_views_were_inpainted_under():
+  generated, _, box, silhouette = scene_with_object()
+  generated[9, 11] = RED
+  generated[15:20, 8:16] = RED  # A red blob in the box but off the object.
+  proxy = np.zeros_like(box)
+  proxy[5:15, 7:17] = 1.0  # The silhouette dilated by one pixel.
+  views = types.SimpleNamespace(captions=["a red cow", "a cow"],
+                                silhouettes=silhouette[None].repeat(2, 0),
+                                truth_round_trip=generated[None].repeat(2, 0))
+  settings = evaluation.EvaluationSettings()
+  generations = [generated[None].repeat(2, 0)]
+  with_proxy = evaluation_singles._by_caption_hue(generations, views, proxy[None].repeat(2, 0),
+                                                  settings)
+  with_box = evaluation_singles._by_caption_hue(generations, views, box[None].repeat(2, 0),
+                                                settings)
+  assert with_proxy["samples"] == 1  # The caption without a colour is left out.
+  assert with_proxy["mean_iou"] == [pytest.approx(1.0)]
+  assert with_box["mean_iou"] == [pytest.approx(64 / (64 + 40))]
 
 
 def test_precision_recall_and_changed_ground_say_where_the_iou_is_lost():
@@ -224,3 +244,21 @@ def test_select_samples_takes_sheets_without_a_color():
     evaluation_generation.select_samples(singles, sheets,
                                          evaluation.EvaluationSettings(num_singles=6))
   assert error.value.field == "default_model_evaluation.num_singles"
+
+
+@pytest.mark.parametrize("hue_ious, passes", [
+    ([0.60, 0.70, 0.80], True),  # 0.80 at scale 1, a rise of 0.20.
+    ([0.70, 0.75, 0.80], False),  # The mask, not the control, sets the shape: a rise of 0.10.
+    ([0.50, 0.60, 0.70], False),  # Rises, but below the IoU threshold at scale 1.
+])
+def test_control_gate_needs_both_the_iou_and_the_rise(hue_ious, passes):
+  gate = evaluation.control_gate(hue_ious, [0.6, 0.65, 0.7], (0.0, 0.5, 1.0),
+                                 evaluation.QualityGates())
+  assert gate["passed"] == passes
+  assert gate["by_caption_hue"]["rise_from_scale_0"] == pytest.approx(hue_ious[2] - hue_ious[0])
+  assert gate["by_difference"]["iou_at_full_scale"] == 0.7
+
+
+def test_control_gate_needs_scale_zero():
+  with pytest.raises(InputError, match="scale 0"):
+    evaluation.control_gate([0.7, 0.8], [0.7, 0.8], (0.5, 1.0), evaluation.QualityGates())
