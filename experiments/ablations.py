@@ -24,7 +24,8 @@ variant is an edit run in OUT/ABLATION/VARIANT reusing that NeRF, and variants t
 edit (e.g. the baseline, listed by several ablations) run once
 (`editing.commands.sweeps`). Reruns resume.
 Quality comes from each edit's evaluation (background PSNR, consistency, prompt colour, proxy
-shape IoU), time is the edit's stages' wall time without the shared NeRF and the evaluation.
+shape IoU, and the edited NeRF's fit and solidity: `sweeps.edit_quality`), time is the edit's
+stages' wall time without the shared NeRF and the evaluation.
 
 Writes RESULTS/ablations.json (every variant's bindings, quality and stage seconds),
 ablations.gin (the common settings) and ablations.png (one row per ablation: each quality
@@ -66,7 +67,9 @@ CONTROLNET_SCALE = "first_iteration/GenerationOptions.controlnet_conditioning_sc
 QUALITY_PANELS = (("background_psnr", "background PSNR", "dB"),
                   ("consistency_change", "consistency vs original", "rel. change"),
                   ("prompt_color_share", "prompt colour", "share of views"),
-                  ("shape_iou", "proxy shape", "IoU"))
+                  ("shape_iou", "proxy shape", "IoU"),
+                  ("solidity_iou", "solidity (held out)", "IoU"),
+                  ("solidity_opacity", "opacity in silhouette", "mean alpha"))
 PANEL_WIDTH, PANEL_HEIGHT = 460, 340
 
 

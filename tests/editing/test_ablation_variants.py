@@ -82,7 +82,8 @@ def test_a_missing_proxy_mesh_is_skipped_and_named(ablations_module, tmp_path):
 
 
 def variant(name, seconds, **quality):
-  keys = ("background_psnr", "consistency_change", "prompt_color_share", "shape_iou")
+  keys = ("background_psnr", "consistency_change", "prompt_color_share", "shape_iou",
+          "solidity_iou", "solidity_opacity")
   return {"name": name, "edit_seconds": seconds, "quality": {key: quality.get(key)
                                                              for key in keys}}
 

@@ -72,3 +72,11 @@ def test_edit_quality_leaves_out_what_was_not_measured():
   assert quality["background_psnr"] == 36.5 and quality["background_ssim"] == 0.99
   assert all(quality[name] is None for name in quality
              if name not in ("background_psnr", "background_ssim"))
+
+
+def test_edit_quality_reports_the_edited_nerfs_fit_and_solidity():
+  quality = sweeps.edit_quality({"nerf_consistency": {
+      "fit_psnr": {"mean": 29.0, "interval": [28.5, 29.5]},
+      "solidity": {"iou": {"mean": 0.81}, "mean_opacity": {"mean": 0.93}}}})
+  assert (quality["fit_psnr"], quality["solidity_iou"], quality["solidity_opacity"]) == (
+      29.0, 0.81, 0.93)

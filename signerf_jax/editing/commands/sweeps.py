@@ -66,6 +66,10 @@ def edit_quality(metrics: dict[str, Any]) -> dict[str, float | None]:
     prompt_color_share: share of edited-NeRF renders whose selection shows the prompt's colour.
     shape_iou: IoU of the pixels the edit changed in edited-NeRF renders with the proxy's
       silhouette (proxy selections).
+    fit_psnr, solidity_iou, solidity_opacity: the edited NeRF's 3D consistency (issue 19,
+      proxy selections): its PSNR against its own edited training images inside the selection,
+      and, at held-out cameras, the IoU of its opacity (alpha > 0.5) with the proxy's silhouette
+      and its mean opacity inside that silhouette.
     clip_directional_similarity: of the edited-NeRF renders (when CLIP weights were given).
   """
   relative = ("consistency", "relative_to_original")
@@ -77,6 +81,9 @@ def edit_quality(metrics: dict[str, Any]) -> dict[str, float | None]:
                                              "mean_epipolar_inliers"),
       "prompt_color_share": _get(metrics, "prompt_color_adherence", "nerf_renders", "share"),
       "shape_iou": _get(metrics, "shape_iou", "nerf_renders"),
+      "fit_psnr": _get(metrics, "nerf_consistency", "fit_psnr", "mean"),
+      "solidity_iou": _get(metrics, "nerf_consistency", "solidity", "iou", "mean"),
+      "solidity_opacity": _get(metrics, "nerf_consistency", "solidity", "mean_opacity", "mean"),
       "clip_directional_similarity": _get(metrics, "clip_directional_similarity", "nerf"),
   }
 
