@@ -114,7 +114,7 @@ def print_summary(result: dict) -> None:
   print(f"  (not a gate)    with the pipeline's proxy masks: mean IoU "
         f"{per_scale(proxy['mean_iou'])} (ceiling {proxy['segmentation_ceiling_iou']:.3f}); "
         f"precision {per_scale(proxy['pooled_precision'])}; recall "
-        f"{per_scale(proxy['pooled_recall'])}; found by the caption's hue "
+        f"{per_scale(proxy['pooled_recall'])}; found by the caption's hue (gate 4) "
         f"{per_scale(proxy['by_caption_hue']['mean_iou'])} (ceiling "
         f"{proxy['by_caption_hue']['segmentation_ceiling_iou']:.3f})")
   by_hue = shape["by_caption_hue"]
