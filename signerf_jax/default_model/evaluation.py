@@ -60,7 +60,7 @@ class EvaluationSettings:
   Attributes:
     num_singles: the first eval single views used for prompt and shape adherence.
     num_sheets: at most this many eval sheets whose caption names no colour (consistency).
-    controlnet_scales: the shape sweep, ascending, including FULL_SCALE.
+    controlnet_scales: the shape sweep, ascending from 0, including FULL_SCALE.
     seed: every generation's key derives from it (`evaluation_generation.evaluation_key`).
     singles_per_device, sheets_per_device: samples each device generates per call (the
       `Generator`'s views_per_device for single views and for sheets).
@@ -90,7 +90,9 @@ class EvaluationSettings:
     scales = list(self.controlnet_scales)
     checks = {
         "num_singles": self.num_singles >= 1, "num_sheets": self.num_sheets >= 1,
-        "controlnet_scales": scales == sorted(set(scales)) and FULL_SCALE in scales,
+        # Gate 4's rise is measured from scale 0: checked here, before any generation.
+        "controlnet_scales": (FULL_SCALE in scales and scales == sorted(set(scales))
+                              and scales[0] == 0),
         "singles_per_device": self.singles_per_device >= 1,
         "sheets_per_device": self.sheets_per_device >= 1,
         "difference_threshold": 0 < self.difference_threshold < 1,
@@ -101,7 +103,7 @@ class EvaluationSettings:
     for name, valid in checks.items():
       if not valid:
         raise InputError(f"invalid value {getattr(self, name)!r} (counts >= 1, scales ascending "
-                         f"and including {FULL_SCALE}, threshold in (0, 1), radii >= 0)",
+                         f"from 0 and including {FULL_SCALE}, threshold in (0, 1), radii >= 0)",
                          field=f"default_model_evaluation.{name}")
 
 
