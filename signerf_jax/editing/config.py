@@ -33,7 +33,7 @@ from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.errors import InputError
 from signerf_jax.geometry.reference_cameras import ReferencePlacement
-from signerf_jax.metrics.consistency import ConsistencySettings
+from signerf_jax.metrics.consistency import ConsistencySettings, Matcher
 from signerf_jax.nerf.capacity import CapacityRules
 from signerf_jax.nerf.train import TrainConfig
 from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, OpenUnitInterval,
@@ -292,8 +292,11 @@ class NerfConsistencySettings(validation.CheckedFields):
     support_clearance: share of the selection box's height, from its bottom along the up axis,
       left out of the opacity.
     opacity_threshold: opacity above which a pixel is the object.
-    correspondence_size: the longer side (px) of the renders SIFT matches.
+    correspondence_size: the longer side (px) of the renders matched for correspondences.
     correspondence_views: held-out cameras rendered for correspondences (evenly spaced).
+    correspondence_matcher: how those renders are matched (`metrics.consistency`; the rest of
+      `ConsistencySettings` applies): "tracked" by default, since renders of a NeRF trained on
+      small views are soft, and SIFT finds about one verified match per pair in them (demo).
     num_resamples, confidence, seed: the bootstrap.
   """
 
@@ -302,6 +305,7 @@ class NerfConsistencySettings(validation.CheckedFields):
   opacity_threshold: OpenUnitInterval = 0.5
   correspondence_size: PositiveInt = 256
   correspondence_views: PositiveInt = 12
+  correspondence_matcher: Matcher = "tracked"
   num_resamples: PositiveInt = 2000
   confidence: OpenUnitInterval = 0.95
   seed: NonNegativeInt = 0

@@ -1,17 +1,27 @@
-"""Multi-view consistency of an image set: verified SIFT correspondences between neighbouring views.
+"""Multi-view consistency of an image set: verified correspondences between neighbouring views.
 
 The paper's appendix ("Multiview Consistency") counts LoFTR correspondences between views of the
 original images, of the reference-sheet-propagated edit and of independent per-view edits:
 independent generation loses ~70% of the correspondences, sheet propagation ~15%. Here the same
-experiment uses SIFT (OpenCV), which needs no learned weights:
+experiment uses OpenCV, which needs no learned weights, with one of two matchers (`matcher`):
 
-  1. keypoints and descriptors per view (`cv2.SIFT_create`), optionally only inside the view's
-     selection mask dilated by `mask_dilation_pixels` (the edit is what changes between image sets;
-     the unchanged background would otherwise dominate the counts);
+  "sift"     SIFT keypoints and descriptors (`cv2.SIFT_create`), nearest-neighbour descriptor
+             matching with Lowe's ratio test (`ratio`): distinctive points, but few in small or
+             soft images (upsampled 64 px views: about one verified match per pair);
+  "tracked"  Shi-Tomasi corners (`cv2.goodFeaturesToTrack`, every corner at least 1/1000 as
+             strong as the strongest, 2 px apart), followed into the other view by pyramidal
+             Lucas-Kanade optical flow and back (`cv2.calcOpticalFlowPyrLK`), kept where the
+             round trip returns within `forward_backward_threshold_pixels`: a semi-dense matcher
+             that finds tens of correspondences where SIFT finds one, for views close enough for
+             flow to follow (neighbours, not opposite sides of an object).
+
+  1. points per view, optionally only inside the view's selection mask dilated by
+     `mask_dilation_pixels` (the edit is what changes between image sets; the unchanged
+     background would otherwise dominate the counts);
   2. view pairs: each view with its `num_neighbours` nearest views by camera-centre distance
      ("distance"), by the angle between viewing directions ("angle"), or the next views by index
      ("index", the only choice without cameras);
-  3. per pair, nearest-neighbour descriptor matching with Lowe's ratio test (`ratio`);
+  3. per pair, the matcher's matches (from the first view's points into the second view);
   4. two verified counts per pair:
      * fundamental_inliers: RANSAC inliers of a fundamental matrix fitted to the matches
        (`cv2.findFundamentalMat`, threshold `ransac_threshold_pixels`): geometry estimated from
@@ -41,8 +51,15 @@ from signerf_jax.validation import (NonNegativeInt, OpenUnitInterval, PositiveFl
                                     Range)
 
 NeighbourMode = Literal["distance", "angle", "index"]
+Matcher = Literal["sift", "tracked"]
 # The 8-point algorithm inside RANSAC needs at least eight correspondences.
 MIN_MATCHES_FOR_FUNDAMENTAL = 8
+# The tracked matcher's corners and flow: OpenCV's usual Lucas-Kanade window, and pyramid levels
+# enough for the ~30 px steps between neighbouring 256 px views.
+CORNER_QUALITY = 1e-3
+CORNER_MIN_DISTANCE_PIXELS = 2
+FLOW_WINDOW_PIXELS = 21
+FLOW_PYRAMID_LEVELS = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,18 +67,23 @@ class ConsistencySettings(validation.CheckedFields):
   """How views are paired, matched and verified (gin: `consistency.<field>`).
 
   Attributes:
+    matcher: "sift" or "tracked" (see the module docstring).
     neighbours: "distance", "angle" or "index" (see the module docstring).
     num_neighbours: neighbours per view (pairs are de-duplicated).
-    ratio: Lowe's ratio test: keep a match if its distance < ratio * the second best's.
+    ratio: SIFT's Lowe's ratio test: keep a match if its distance < ratio * the second best's.
+    forward_backward_threshold_pixels: the tracked matcher keeps a point whose flow there and
+      back returns within this distance.
     ransac_threshold_pixels, ransac_confidence, ransac_iterations: `cv2.findFundamentalMat`.
     epipolar_threshold_pixels: maximum symmetric distance to the known epipolar lines.
     mask_dilation_pixels: radius of the square dilation of the selection masks (when given).
-    max_keypoints: SIFT's `nfeatures` (0: all).
+    max_keypoints: SIFT's `nfeatures`, the tracked matcher's most corners (0: all).
   """
 
+  matcher: Matcher = "sift"
   neighbours: NeighbourMode = "distance"
   num_neighbours: PositiveInt = 2
   ratio: Annotated[float, Range(0, 1, low_inclusive=False)] = 0.75
+  forward_backward_threshold_pixels: PositiveFloat = 1.0
   ransac_threshold_pixels: PositiveFloat = 1.0
   ransac_confidence: OpenUnitInterval = 0.999
   ransac_iterations: PositiveInt = 2000
@@ -76,7 +98,8 @@ class PairCorrespondences:
 
   Attributes:
     first, second: view indices.
-    matches: descriptor matches passing the ratio test.
+    matches: SIFT's descriptor matches passing the ratio test, or the points tracked there and
+      back.
     fundamental_inliers: RANSAC inliers of the fitted fundamental matrix (0 below 8 matches).
     epipolar_inliers: matches consistent with the known cameras (None without cameras).
   """
@@ -164,12 +187,19 @@ def _detection_mask(mask: np.ndarray, dilation_pixels: int) -> np.ndarray:
   return mask
 
 
-def detect_features(images, masks=None, settings: ConsistencySettings = ConsistencySettings()
+def _detection_masks(masks, count: int, settings: ConsistencySettings) -> list:
+  """Per view, the dilated selection mask points are detected in (None: the whole view)."""
+  if masks is None:
+    return [None] * count
+  return [_detection_mask(mask, settings.mask_dilation_pixels) for mask in masks]
+
+
+def detect_features(grays, masks=None, settings: ConsistencySettings = ConsistencySettings()
                     ) -> list[tuple[np.ndarray, np.ndarray]]:
   """SIFT keypoints and descriptors of each view.
 
   Args:
-    images: [N, H, W, 3] float in [0, 1] or uint8.
+    grays: N [H, W] uint8 luma images (`_gray_uint8`).
     masks: optional [N, H, W] selection masks; keypoints are kept inside their dilation only.
     settings: `max_keypoints` and `mask_dilation_pixels` apply.
   Returns:
@@ -177,15 +207,48 @@ def detect_features(images, masks=None, settings: ConsistencySettings = Consiste
   """
   sift = cv2.SIFT_create(nfeatures=settings.max_keypoints)
   features = []
-  for index, image in enumerate(images):
-    detection_mask = (None if masks is None
-                      else _detection_mask(masks[index], settings.mask_dilation_pixels))
-    keypoints, descriptors = sift.detectAndCompute(_gray_uint8(image), detection_mask)
+  for gray, detection_mask in zip(grays, _detection_masks(masks, len(grays), settings)):
+    keypoints, descriptors = sift.detectAndCompute(gray, detection_mask)
     if descriptors is None:
       descriptors = np.zeros((0, 128), np.float32)
     points = np.array([keypoint.pt for keypoint in keypoints], np.float64).reshape(-1, 2)
     features.append((points, descriptors))
   return features
+
+
+def detect_corners(grays, masks=None, settings: ConsistencySettings = ConsistencySettings()
+                   ) -> list[np.ndarray]:
+  """Shi-Tomasi corners of each view (the tracked matcher's points): per view [K, 2] float32
+  (x, y) in OpenCV pixels; `grays`, `masks` and `settings` as `detect_features`."""
+  corners = []
+  for gray, detection_mask in zip(grays, _detection_masks(masks, len(grays), settings)):
+    found = cv2.goodFeaturesToTrack(gray, settings.max_keypoints, CORNER_QUALITY,
+                                    CORNER_MIN_DISTANCE_PIXELS, mask=detection_mask)
+    corners.append(np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2))
+  return corners
+
+
+def track_points(first_gray: np.ndarray, second_gray: np.ndarray, points: np.ndarray,
+                 settings: ConsistencySettings) -> tuple[np.ndarray, np.ndarray]:
+  """Points [K, 2] of the first view followed into the second by Lucas-Kanade flow.
+
+  Returns [M, 2] float64 positions in the first view and in the second (OpenCV pixels) of the
+  points found both ways whose round trip ends within `forward_backward_threshold_pixels`.
+  """
+  if len(points) == 0:
+    return np.zeros((0, 2)), np.zeros((0, 2))
+  points = np.asarray(points, np.float32).reshape(-1, 1, 2)
+  def flow(source, target, start):
+    return cv2.calcOpticalFlowPyrLK(source, target, start, None,
+                                    winSize=(FLOW_WINDOW_PIXELS,) * 2,
+                                    maxLevel=FLOW_PYRAMID_LEVELS)[:2]
+  there, found = flow(first_gray, second_gray, points)
+  back, found_back = flow(second_gray, first_gray, there)
+  round_trip = np.linalg.norm((back - points).reshape(-1, 2), axis=-1)
+  kept = ((found.ravel() == 1) & (found_back.ravel() == 1)
+          & (round_trip <= settings.forward_backward_threshold_pixels))
+  return (points.reshape(-1, 2)[kept].astype(np.float64),
+          there.reshape(-1, 2)[kept].astype(np.float64))
 
 
 def ratio_test_matches(first_descriptors: np.ndarray, second_descriptors: np.ndarray,
@@ -252,6 +315,24 @@ def symmetric_epipolar_distance(fundamental: np.ndarray, first_points: np.ndarra
                     line_distance(second_points @ fundamental, first_points))
 
 
+def _matcher(grays, masks, settings: ConsistencySettings):
+  """(first, second) -> matched positions [M, 2] in each view (OpenCV pixels) and M, by
+  `settings.matcher`; each view's points are found once."""
+  if settings.matcher == "sift":
+    features = detect_features(grays, masks, settings)
+    def match(first, second):
+      (first_points, first_descriptors), (second_points, second_descriptors) = (
+          features[first], features[second])
+      matches = ratio_test_matches(first_descriptors, second_descriptors, settings.ratio)
+      return first_points[matches[:, 0]], second_points[matches[:, 1]], len(matches)
+  else:
+    corners = detect_corners(grays, masks, settings)
+    def match(first, second):
+      tracked = track_points(grays[first], grays[second], corners[first], settings)
+      return (*tracked, len(tracked[0]))
+  return match
+
+
 def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, masks=None,
                           settings: ConsistencySettings = ConsistencySettings()
                           ) -> ConsistencyReport:
@@ -269,23 +350,19 @@ def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, mas
   if masks is not None and np.shape(masks) != images.shape[:3]:
     raise InputError(f"masks have shape {np.shape(masks)}, expected {images.shape[:3]}",
                      field="masks")
-  features = detect_features(images, masks, settings)
-  if cameras is not None:
-    ideal = ideal_pixels(cameras, [points for points, _ in features])
+  match = _matcher([_gray_uint8(image) for image in images], masks, settings)
   pairs = []
   for first, second in neighbour_pairs(len(images), settings, cameras):
-    (first_points, first_descriptors), (second_points, second_descriptors) = (
-        features[first], features[second])
-    matches = ratio_test_matches(first_descriptors, second_descriptors, settings.ratio)
-    matched_first, matched_second = first_points[matches[:, 0]], second_points[matches[:, 1]]
+    matched_first, matched_second, matches = match(first, second)
     epipolar = None
     if cameras is not None:
+      ideal_first, ideal_second = ideal_pixels(cameras.take([first, second]),
+                                               [matched_first, matched_second])
       distances = symmetric_epipolar_distance(
-          fundamental_from_cameras(cameras, first, second),
-          ideal[first][matches[:, 0]], ideal[second][matches[:, 1]])
+          fundamental_from_cameras(cameras, first, second), ideal_first, ideal_second)
       epipolar = int(np.count_nonzero(distances <= settings.epipolar_threshold_pixels))
     pairs.append(PairCorrespondences(
-        first=int(first), second=int(second), matches=len(matches),
+        first=int(first), second=int(second), matches=matches,
         fundamental_inliers=fundamental_inliers(matched_first, matched_second, settings),
         epipolar_inliers=epipolar))
   return ConsistencyReport(tuple(pairs))

@@ -92,6 +92,7 @@ def test_the_evaluation_measures_fit_solidity_and_correspondences_on_the_nerf(fi
   assert 0 <= measured["solidity"]["iou"]["mean"] <= 1
   assert 0 <= measured["solidity"]["mean_opacity"]["mean"] <= 1
   correspondences = measured["correspondences"]
+  assert correspondences["matcher"] == "tracked"
   assert max(correspondences["size"]) == 48
   assert correspondences["views"] == min(3, metrics["num_eval_views"])
   assert correspondences["pairs"] >= 1

@@ -12,15 +12,16 @@ that two edits are compared by whether their intervals overlap:
                    object stands on is not the object) against the proxy's visible silhouette:
                    IoU of (opacity > threshold) and the mean opacity inside the silhouette
                    (figure: evaluation/solidity.png);
-  correspondences  verified SIFT correspondences (`metrics.consistency`, epipolar inliers)
-                   between renders of the edited NeRF at neighbouring held-out cameras, rendered
-                   at `correspondence_size` px so that SIFT finds enough of them, against the
-                   original NeRF's renders of the same cameras: the relative change and its
-                   interval over view pairs.
+  correspondences  verified correspondences (`metrics.consistency` with the
+                   `correspondence_matcher`, tracked by default; epipolar inliers) between
+                   renders of the edited NeRF at neighbouring held-out cameras, rendered at
+                   `correspondence_size` px, against the original NeRF's renders of the same
+                   cameras: the counts, the relative change and its interval over view pairs.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -102,12 +103,15 @@ def _correspondences(context: EditContext, original, edited,
   cameras = cameras.resized(max(1, round(cameras.width * scale)),
                             max(1, round(cameras.height * scale)))
   masks = _selection_rectangles(cameras, context.selection.points)
+  matching = dataclasses.replace(context.settings.consistency,
+                                 matcher=settings.correspondence_matcher)
   reports = {name: consistency.image_set_consistency(
       render.render_cameras(nerf.model, nerf.variables, cameras)["rgb"], cameras, masks,
-      context.settings.consistency) for name, nerf in (("original", original), ("edited", edited))}
+      matching) for name, nerf in (("original", original), ("edited", edited))}
   counts = {name: np.array([pair.epipolar_inliers for pair in report.pairs], np.float64)
             for name, report in reports.items()}
-  return {"size": [cameras.width, cameras.height], "views": cameras.num_cameras,
+  return {"matcher": matching.matcher, "size": [cameras.width, cameras.height],
+          "views": cameras.num_cameras,
           "pairs": len(counts["edited"]),
           "mean_epipolar_inliers": {name: float(np.mean(values)) if len(values) else None
                                     for name, values in counts.items()},
