@@ -88,7 +88,7 @@ def test_original_views_have_many_verified_correspondences(image_sets, reports, 
   assert summary["mean_epipolar_inliers"] >= minimum
   assert summary["total_epipolar_inliers"] == sum(p.epipolar_inliers
                                                   for p in reports["original"].pairs)
-  # Exact renders: almost every ratio-test match agrees with the true cameras.
+  # Exact renders: almost every match agrees with the true cameras.
   assert summary["mean_epipolar_inliers"] >= 0.85 * summary["mean_matches"]
 
 
