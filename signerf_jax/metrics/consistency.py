@@ -316,7 +316,7 @@ def symmetric_epipolar_distance(fundamental: np.ndarray, first_points: np.ndarra
 
 
 def _matcher(grays, masks, settings: ConsistencySettings):
-  """(first, second) -> matched positions [M, 2] in each view (OpenCV pixels) and M, by
+  """(first, second) -> matched positions [M, 2] in each view (OpenCV pixels), by
   `settings.matcher`; each view's points are found once."""
   if settings.matcher == "sift":
     features = detect_features(grays, masks, settings)
@@ -324,12 +324,11 @@ def _matcher(grays, masks, settings: ConsistencySettings):
       (first_points, first_descriptors), (second_points, second_descriptors) = (
           features[first], features[second])
       matches = ratio_test_matches(first_descriptors, second_descriptors, settings.ratio)
-      return first_points[matches[:, 0]], second_points[matches[:, 1]], len(matches)
+      return first_points[matches[:, 0]], second_points[matches[:, 1]]
   else:
     corners = detect_corners(grays, masks, settings)
     def match(first, second):
-      tracked = track_points(grays[first], grays[second], corners[first], settings)
-      return (*tracked, len(tracked[0]))
+      return track_points(grays[first], grays[second], corners[first], settings)
   return match
 
 
@@ -353,7 +352,7 @@ def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, mas
   match = _matcher([_gray_uint8(image) for image in images], masks, settings)
   pairs = []
   for first, second in neighbour_pairs(len(images), settings, cameras):
-    matched_first, matched_second, matches = match(first, second)
+    matched_first, matched_second = match(first, second)
     epipolar = None
     if cameras is not None:
       ideal_first, ideal_second = ideal_pixels(cameras.take([first, second]),
@@ -362,7 +361,7 @@ def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, mas
           fundamental_from_cameras(cameras, first, second), ideal_first, ideal_second)
       epipolar = int(np.count_nonzero(distances <= settings.epipolar_threshold_pixels))
     pairs.append(PairCorrespondences(
-        first=int(first), second=int(second), matches=matches,
+        first=int(first), second=int(second), matches=len(matched_first),
         fundamental_inliers=fundamental_inliers(matched_first, matched_second, settings),
         epipolar_inliers=epipolar))
   return ConsistencyReport(tuple(pairs))
