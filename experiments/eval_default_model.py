@@ -5,15 +5,18 @@
 
 Measures prompt adherence, shape adherence over ControlNet scales (in box masks, and in the
 pipeline's proxy masks: whether the control steers the shape), colour consistency of sheets,
-independent views and slot updates, and seconds per generation call
+independent views and slot updates, whether a sheet carries shape to its slot (beside the gates),
+and seconds per generation call
 (`signerf_jax.default_model.evaluation`, whose docstring defines each measure), on the "eval"
 split of the dataset. Writes
   * --output (default experiments/results/default_model.json): the measures, pass/fail of each
     gate with its threshold, timings and the machine (CPU count, load average), and the full gin
     config beside it (.gin);
   * <output stem>_samples.png: single views (input, mask, control, generation per ControlNet
-    scale, the object found at scale 1, the truth) and sheets (input, mask, control, generated
-    sheet, slot update, the same views generated independently).
+    scale, the object found at scale 1, the truth), sheets (input, mask, control, generated
+    sheet, slot update, the same views generated independently) and shape transfer (one true
+    view of the object, the slot view's input, its object made alone, in a sheet of the true
+    views and in one of another object's, the truth; box masks at ControlNet scale 0).
 """
 
 from __future__ import annotations
@@ -31,8 +34,8 @@ import numpy as np
 
 from signerf_jax import configs, files
 from signerf_jax.default_model import (evaluation, evaluation_consistency,
-                                       evaluation_generation, evaluation_singles,
-                                       training_data)
+                                       evaluation_generation, evaluation_shape_transfer,
+                                       evaluation_singles, training_data)
 from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.editing import figures, generation
@@ -94,6 +97,24 @@ def samples_figure(singles: evaluation_generation.ViewInputs, single_images: dic
   return stack_vertically(grids)
 
 
+def shape_transfer_figure(sheets: evaluation_generation.ViewInputs, transfer_images: dict,
+                          layout: sheet_lib.SheetLayout, settings: evaluation.EvaluationSettings
+                          ) -> np.ndarray:
+  """The shape-transfer rows of the module docstring (the first condition), [H, W, 3]."""
+  tiles, slots = layout.num_tiles, transfer_images["slots"][0]
+  masks, scale = transfer_images["conditions"][0]
+  rows, labels = [], []
+  for index in range(min(settings.figure_sheets, len(sheets.captions))):
+    mask = sheets.masks[index, tiles][..., None]
+    rows.append([sheets.truth[index, 0],
+                 sheets.background[index, tiles] * (1 - mask) + sheet_lib.EMPTY_SLOT_COLOR * mask,
+                 slots["alone"][index], slots["true_views"][index],
+                 slots["other_object"][index], sheets.truth[index, tiles]])
+    labels.append(["a true view", f"{masks} mask, scale {scale:g}", "alone", "true views' sheet",
+                   "other object's", "truth"])
+  return figures.image_grid(rows, labels)
+
+
 def print_summary(result: dict) -> None:
   prompt, shape = result["prompt_adherence"], result["shape_adherence"]
   consistency, timing, gates = result["consistency"], result["timing"], result["gates"]
@@ -134,6 +155,15 @@ def print_summary(result: dict) -> None:
         f"{consistency['sheets']} sheets: sheet {agreement['sheet']:.3f}, slot update "
         f"{agreement['slot_update']:.3f}, independent {agreement['independent']:.3f} (margin >= "
         f"{gates['consistency']['threshold']})")
+  interval = lambda measure: f"[{measure['interval'][0]:+.3f}, {measure['interval'][1]:+.3f}]"
+  for condition in result["shape_transfer"]["conditions"]:
+    iou, added = condition["mean_iou"], condition["added_by_true_views"]
+    lost = condition["lost_to_other_object"]
+    print(f"  (not a gate)    shape transfer, {condition['masks']} masks at scale "
+          f"{condition['controlnet_scale']:g}: slot IoU alone {iou['alone']:.3f}, in the true "
+          f"views' sheet {iou['true_views']:.3f} ({added['mean']:+.3f} {interval(added)}), in "
+          f"another object's {iou['other_object']:.3f} (true views {lost['mean']:+.3f} "
+          f"{interval(lost)})")
   seconds = lambda task, field: timing.get(task, {}).get(field)
   show = lambda value: "n/a" if value is None else f"{value:.2f} s"
   print(f"timing            sheet {show(seconds('sheet', 'seconds_per_sample'))}, slot update "
@@ -175,6 +205,10 @@ def main(argv=None) -> int:
                                                                        settings, timer)
   consistency, sheet_images = evaluation_consistency.evaluate_consistency(
       sheet_generator, single_generator, sheets, data.layout, settings, timer)
+  transfer_sheets = evaluation_generation.ViewInputs.from_arrays(
+      data.sheets, np.arange(min(settings.shape_transfer_sheets, len(data.sheets["caption"]))))
+  shape_transfer, transfer_images = evaluation_shape_transfer.evaluate_shape_transfer(
+      single_generator, sheet_generator, transfer_sheets, data.layout, settings, timer)
   shape = single_measures["shape_adherence"]
   gates = evaluation.quality_gates(single_measures["prompt_adherence"]["share"],
                                    shape["mean_iou"], shape["controlnet_scales"],
@@ -185,7 +219,7 @@ def main(argv=None) -> int:
       thresholds)
   result = {
       "model": str(args.model), "data": str(args.data), "split": "eval", "gates": gates,
-      **single_measures, "consistency": consistency,
+      **single_measures, "consistency": consistency, "shape_transfer": shape_transfer,
       "timing": {**timer.summary(), "loading_seconds": load_seconds,
                  "total_wall_seconds": time.monotonic() - start},
       "machine": machine(load_at_start),
@@ -194,8 +228,9 @@ def main(argv=None) -> int:
   files.write_json(output, result)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   figure_path = output.with_name(f"{output.stem}_samples.png")
-  files.write_image(figure_path, samples_figure(singles, single_images, sheets, sheet_images,
-                                                data.layout, settings))
+  files.write_image(figure_path, stack_vertically([
+      samples_figure(singles, single_images, sheets, sheet_images, data.layout, settings),
+      shape_transfer_figure(transfer_sheets, transfer_images, data.layout, settings)]))
   print_summary(result)
   print(f"results in {output}, samples in {figure_path}")
   return 0

@@ -31,6 +31,8 @@ sample's caption, starting from noise (`evaluation_generation`):
    not count the ground repainted around it. The gate: IoU at scale 1 >= a threshold and a rise
    from scale 0 >= another (`control_gate`).
 5. Time per generation call (`evaluation_generation.CallTimer`), compilation apart.
+Beside the gates (issue 19): whether a sheet carries shape to its slot, as gate 3 shows it
+carries colour (`evaluation_shape_transfer`).
 
 The generated object is found by its difference from the VAE round trip of the object-free view
 (`generated_objects`, whose docstring says how and why).
@@ -70,6 +72,7 @@ class EvaluationSettings:
     proxy_mask_dilation, proxy_mask_feather: the pipeline's proxy masks, measured beside the
       gate (`evaluation_singles`; `SelectionConfig.dilation_radius`, `feather_radius`: pixels
       at 512 pixels).
+    shape_transfer_sheets: the first eval sheets (any caption) of the shape-transfer measure.
     figure_singles, figure_sheets: samples shown in the figure.
   """
 
@@ -83,6 +86,7 @@ class EvaluationSettings:
   min_component_pixels: int = 6
   proxy_mask_dilation: float = 24.0
   proxy_mask_feather: float = 8.0
+  shape_transfer_sheets: int = 64
   figure_singles: int = 4
   figure_sheets: int = 2
 
@@ -99,11 +103,14 @@ class EvaluationSettings:
         "min_component_pixels": self.min_component_pixels >= 1,
         "proxy_mask_dilation": self.proxy_mask_dilation >= 0,
         "proxy_mask_feather": self.proxy_mask_feather >= 0,
+        # Its "other object" sheets hold the next sample's views: two samples at least.
+        "shape_transfer_sheets": self.shape_transfer_sheets >= 2,
     }
     for name, valid in checks.items():
       if not valid:
-        raise InputError(f"invalid value {getattr(self, name)!r} (counts >= 1, scales ascending "
-                         f"from 0 and including {FULL_SCALE}, threshold in (0, 1), radii >= 0)",
+        raise InputError(f"invalid value {getattr(self, name)!r} (counts >= 1, shape-transfer "
+                         f"sheets >= 2, scales ascending from 0 and including {FULL_SCALE}, "
+                         "threshold in (0, 1), radii >= 0)",
                          field=f"default_model_evaluation.{name}")
 
 

@@ -26,8 +26,9 @@ from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.diffusion import sampler
 from signerf_jax.editing.generation import Generator
 from signerf_jax.errors import InputError
+from signerf_jax.geometry import masks as masks_lib
 
-KEY_PURPOSES = ("single", "sheet", "independent", "slot")
+KEY_PURPOSES = ("single", "sheet", "independent", "slot", "shape_transfer")
 
 
 def evaluation_key(seed: int, purpose: str, sample_index: int, view_index: int = 0) -> np.ndarray:
@@ -173,6 +174,14 @@ def generate_with_captions(generator: Generator, captions: Sequence[str], image,
                               dataclasses.replace(generator, prompt=prompt),
                               image[part], mask[part], control[part], keys[part]))
   return np.concatenate(outputs)
+
+
+def pipeline_proxy_masks(silhouettes: np.ndarray, settings: evaluation.EvaluationSettings
+                         ) -> np.ndarray:
+  """[..., H, W] float32: the pipeline's proxy masks of true silhouettes [..., H, W] (dilated and
+  feathered as `SelectionConfig` does by default)."""
+  return np.asarray(masks_lib.dilate_and_feather(silhouettes, radius=settings.proxy_mask_dilation,
+                                                 feather=settings.proxy_mask_feather))
 
 
 def with_scale(generator: Generator, scale: float) -> Generator:

@@ -27,11 +27,11 @@ from signerf_jax.default_model import samples
 from signerf_jax.default_model.evaluation import FULL_SCALE, EvaluationSettings
 from signerf_jax.default_model.evaluation_generation import (CallTimer, ViewInputs,
                                                              evaluation_key,
-                                                             generate_with_captions, round_trip,
-                                                             with_scale)
+                                                             generate_with_captions,
+                                                             pipeline_proxy_masks,
+                                                             round_trip, with_scale)
 from signerf_jax.editing import evaluation as editing_evaluation
 from signerf_jax.editing.generation import Generator
-from signerf_jax.geometry import masks as masks_lib
 from signerf_jax.metrics import colors
 from signerf_jax.metrics import silhouettes as silhouettes_lib
 
@@ -189,9 +189,7 @@ def evaluate_singles(generator: Generator, views: ViewInputs, settings: Evaluati
   generated, objects, shape = _sweep(generator, singles, singles.masks, settings, timer)
   # Not a gate: the same with the pipeline's own proxy-placement masks (the visible proxy,
   # dilated and feathered as `SelectionConfig` does by default), as the paper inpaints.
-  proxy_masks = np.asarray(masks_lib.dilate_and_feather(
-      singles.silhouettes, radius=settings.proxy_mask_dilation,
-      feather=settings.proxy_mask_feather))
+  proxy_masks = pipeline_proxy_masks(singles.silhouettes, settings)
   proxy_generated, _, with_proxy_masks = _sweep(generator, singles, proxy_masks, settings,
                                                 timer)
   with_proxy_masks.pop("per_view")
