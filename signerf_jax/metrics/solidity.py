@@ -121,9 +121,10 @@ def summarize(values: np.ndarray, **bootstrap_options) -> dict[str, Any]:
           "count": int(known.size)}
 
 
-def separated(first: dict[str, Any], second: dict[str, Any]) -> bool:
-  """Whether two `summarize` results' intervals do not overlap."""
+def compare(first: dict[str, Any], second: dict[str, Any]) -> str:
+  """"higher" when the first `summarize` result's interval lies wholly above the second's,
+  "lower" when wholly below, "overlapping" otherwise (or when either was not measured)."""
   if first["interval"] is None or second["interval"] is None:
-    return False
+    return "overlapping"
   (low_a, high_a), (low_b, high_b) = first["interval"], second["interval"]
-  return high_a < low_b or high_b < low_a
+  return "higher" if low_a > high_b else "lower" if high_a < low_b else "overlapping"

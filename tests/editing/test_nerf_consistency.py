@@ -97,7 +97,10 @@ def test_a_scene_runs_the_sheet_and_the_chosen_baselines_only(experiment, tmp_pa
       ran.append(arm.name)
       fit = {"sheet": 20.0, "independent": 18.0}[arm.name]
       summary = {"mean": fit, "interval": [fit - 0.5, fit + 0.5]}
-      measured = {"fit_psnr": summary, "solidity": {"iou": summary, "mean_opacity": summary},
+      iou = {"sheet": 0.7, "independent": 0.8}[arm.name]  # The independent edit's is higher.
+      measured = {"fit_psnr": summary,
+                  "solidity": {"iou": {"mean": iou, "interval": [iou - 0.02, iou + 0.02]},
+                               "mean_opacity": summary},
                   "correspondences": {"relative_change": -0.2, "interval": [-0.3, -0.1]}}
       directory = tmp_path / group / arm.name
       files.write_json(directory / "evaluation" / "metrics.json",
@@ -106,6 +109,6 @@ def test_a_scene_runs_the_sheet_and_the_chosen_baselines_only(experiment, tmp_pa
 
   result = experiment.run_scene(RecordingSweep(), experiment.chosen_arms(["independent"]))
   assert ran == ["sheet", "independent"] and list(result["arms"]) == ran
-  assert result["separated"] == {"independent": {
-      "fit_psnr": True, "solidity/iou": True, "solidity/mean_opacity": True,
-      "correspondences": False}}
+  assert result["sheet_against"] == {"independent": {
+      "fit_psnr": "higher", "solidity/iou": "lower", "solidity/mean_opacity": "higher",
+      "correspondences": "overlapping"}}

@@ -67,8 +67,9 @@ def test_bootstrap_intervals_separate_what_differs_and_not_what_does_not():
   low = solidity.summarize(RNG.normal(0.5, 0.05, 20))
   same = solidity.summarize(RNG.normal(0.9, 0.05, 20))
   assert high["interval"][0] <= high["mean"] <= high["interval"][1]
-  assert solidity.separated(high, low) and solidity.separated(low, high)
-  assert not solidity.separated(high, same)
+  assert solidity.compare(high, low) == "higher" and solidity.compare(low, high) == "lower"
+  assert solidity.compare(high, same) == "overlapping"
+  assert solidity.compare(high, {"mean": None, "interval": None}) == "overlapping"
 
 
 def test_the_bootstrap_is_deterministic_and_a_single_value_has_a_zero_width_interval():
