@@ -122,8 +122,8 @@ def summarize(values: np.ndarray, **bootstrap_options) -> dict[str, Any]:
 
 
 def compare(first: dict[str, Any], second: dict[str, Any]) -> str:
-  """"higher" when the first `summarize` result's interval lies wholly above the second's,
-  "lower" when wholly below, "overlapping" otherwise (or when either was not measured)."""
+  """Where the first `summarize` result's interval lies against the second's: "higher" (wholly
+  above), "lower" (wholly below) or "overlapping" (also when either was not measured)."""
   if first["interval"] is None or second["interval"] is None:
     return "overlapping"
   (low_a, high_a), (low_b, high_b) = first["interval"], second["interval"]
