@@ -35,29 +35,35 @@ from signerf_jax.metrics import solidity
 CONDITIONS = (("box", 0.0), ("box", FULL_SCALE), ("proxy", FULL_SCALE))
 
 
+def true_view_sheets(sheets: ViewInputs, layout: sheet_lib.SheetLayout) -> list[SheetInputs]:
+  """Per sample of `sheets` ([S, M + 1, ...]: the M tile views, then the slot view), the sheet
+  of its M true renders and their control depth, nothing masked."""
+  tiles = layout.num_tiles
+  return [SheetInputs.from_tiles(truth[:tiles], controls[:tiles],
+                                 np.zeros_like(masks[:tiles]), layout)
+          for truth, controls, masks in zip(sheets.truth, sheets.controls, sheets.masks)]
+
+
 def slot_in_true_view_sheets(sheets: ViewInputs, layout: sheet_lib.SheetLayout,
-                             sources: np.ndarray, slot_masks: np.ndarray
+                             true_sheets: list[SheetInputs], sources: np.ndarray,
+                             slot_masks: np.ndarray
                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Slot-update inputs whose sheets hold true renders instead of generated tiles.
 
   Args:
     sheets: [S, M + 1, ...] sheet samples (the M tile views, then the slot view).
-    sources: [S] sample i's slot view goes into a sheet of sample sources[i]'s M true renders
-      and their control depth.
+    true_sheets: `true_view_sheets(sheets, layout)`.
+    sources: [S] sample i's slot view goes into sample sources[i]'s true-view sheet.
     slot_masks: [S, H, W] the slot views' inpainting masks.
   Returns:
     (rgb [S, SH, SW, 3], control [S, SH, SW, 1], mask [S, SH, SW, 1]); the mask is zero on the
     tiles (`sheet.slot_update_inputs`).
   """
   tiles = layout.num_tiles
-  parts = []
-  for index, source in enumerate(sources):
-    sheet = SheetInputs.from_tiles(sheets.truth[source, :tiles], sheets.controls[source, :tiles],
-                                   np.zeros_like(sheets.masks[source, :tiles]), layout)
-    parts.append(sheet_lib.slot_update_inputs(
-        sheet.rgb, sheet.control, sheets.background[index, tiles][None],
-        sheets.controls[index, tiles][None, ..., None], slot_masks[index][None, ..., None],
-        layout=layout))
+  parts = [sheet_lib.slot_update_inputs(
+      true_sheets[source].rgb, true_sheets[source].control, sheets.background[index, tiles][None],
+      sheets.controls[index, tiles][None, ..., None], slot_masks[index][None, ..., None],
+      layout=layout) for index, source in enumerate(sources)]
   return tuple(np.concatenate([np.asarray(part[position]) for part in parts])
                for position in range(3))
 
@@ -65,10 +71,10 @@ def slot_in_true_view_sheets(sheets: ViewInputs, layout: sheet_lib.SheetLayout,
 def paired_difference(minuend: np.ndarray, subtrahend: np.ndarray) -> dict:
   """Mean and bootstrap interval (95%, over samples) of minuend - subtrahend ([S] each), and
   whether the interval leaves out zero."""
-  difference = np.asarray(minuend, np.float64) - np.asarray(subtrahend, np.float64)
-  low, high = solidity.bootstrap_interval(difference)
-  return {"mean": float(np.mean(difference)), "interval": [low, high],
-          "significant": bool(low > 0 or high < 0)}
+  summary = solidity.summarize(np.asarray(minuend, np.float64)
+                               - np.asarray(subtrahend, np.float64))
+  return {"mean": summary["mean"], "interval": summary["interval"],
+          "significant": solidity.compare(summary, {"interval": [0.0, 0.0]}) != "overlapping"}
 
 
 def shape_transfer_measures(ious: dict[str, np.ndarray]) -> dict:
@@ -100,6 +106,7 @@ def evaluate_shape_transfer(single_generator: Generator, sheet_generator: Genera
   keys = np.stack([evaluation_key(settings.seed, "shape_transfer", index)
                    for index in range(count)])
   sources = {"true_views": np.arange(count), "other_object": np.roll(np.arange(count), -1)}
+  true_sheets = true_view_sheets(sheets, layout)  # The same sheets under every condition.
   measures, slots = [], []
   for mask_kind, scale in CONDITIONS:
     slot_masks = masks[mask_kind]
@@ -107,7 +114,8 @@ def evaluate_shape_transfer(single_generator: Generator, sheet_generator: Genera
         with_scale(single_generator, scale), sheets.captions, background, slot_masks,
         sheets.controls[:, tiles], keys, timer, "single_view")}
     for source, order in sources.items():
-      image, control, mask = slot_in_true_view_sheets(sheets, layout, order, slot_masks)
+      image, control, mask = slot_in_true_view_sheets(sheets, layout, true_sheets, order,
+                                                      slot_masks)
       made = generate_with_captions(with_scale(sheet_generator, scale), sheets.captions, image,
                                     mask, control, keys, timer, "slot_update")
       generated[source] = np.stack([np.asarray(sheet_lib.disassemble(one, layout)[1])

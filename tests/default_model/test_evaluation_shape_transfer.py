@@ -54,8 +54,8 @@ def test_slot_in_true_view_sheets_puts_each_view_among_the_chosen_samples_tiles(
   sheets = constructed_sheets()
   sources = np.array([2, 0, 1])
   slot_masks = sheets.masks[:, LAYOUT.num_tiles] * 0.5
-  rgb, control, mask = shape_transfer.slot_in_true_view_sheets(sheets, LAYOUT, sources,
-                                                               slot_masks)
+  rgb, control, mask = shape_transfer.slot_in_true_view_sheets(
+      sheets, LAYOUT, shape_transfer.true_view_sheets(sheets, LAYOUT), sources, slot_masks)
   for index, source in enumerate(sources):
     tiles, slot = sheet_lib.disassemble(rgb[index], LAYOUT)
     np.testing.assert_allclose(tiles, sheets.truth[source, :LAYOUT.num_tiles])
