@@ -1,14 +1,17 @@
 """Shared test plumbing: the ../shared/data location, the `shared_data` marker, a compilation
-cache private to the session, and a broken torchvision hidden from transformers."""
+cache private to the session, a broken torchvision hidden from transformers, and experiment
+scripts imported as modules."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import sys
 import tempfile
 from pathlib import Path
 
+import gin
 import pytest
 
 # The CLI keeps compiled programs in the user's cache directory between commands; tests (and the
@@ -85,3 +88,27 @@ def pytest_collection_modifyitems(config, items):
 def shared_data() -> Path:
   """The ../shared/data directory; tests using it must carry @pytest.mark.shared_data."""
   return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def experiment_script():
+  """A loader: `experiment_script(name)` is experiments/<name>.py imported as the module
+  `<name>_experiment`, once per session (the scripts are not a package). It is registered in
+  sys.modules before it runs, so that its dataclasses resolve their annotations, and runs with
+  gin unlocked, so that its configurables register even after a test finalized gin's config."""
+
+  def load(name: str):
+    module_name = f"{name}_experiment"
+    if module_name not in sys.modules:
+      spec = importlib.util.spec_from_file_location(
+          module_name, REPOSITORY_ROOT / "experiments" / f"{name}.py")
+      sys.modules[module_name] = importlib.util.module_from_spec(spec)
+      try:
+        with gin.unlock_config():
+          spec.loader.exec_module(sys.modules[module_name])
+      except BaseException:
+        del sys.modules[module_name]
+        raise
+    return sys.modules[module_name]
+
+  return load

@@ -1,9 +1,6 @@
 """experiments/profile_diffusion.py: each XLA operation goes to the kind of work its HLO metadata
 names, and a profiled forward's breakdown covers what ran."""
 
-import importlib.util
-from pathlib import Path
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -11,17 +8,13 @@ import pytest
 
 from signerf_jax.diffusion import layers
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "profile_diffusion.py"
 UNET = "jit(unet_forward)/UNet2DCondition/UNet2DCondition.up_path/up_blocks_1"
 BLOCK = f"{UNET}/attentions_0/transformer_blocks_0"
 
 
 @pytest.fixture(scope="module")
-def experiment():
-  spec = importlib.util.spec_from_file_location("profile_diffusion_experiment", SCRIPT)
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module
+def experiment(experiment_script):
+  return experiment_script("profile_diffusion")
 
 
 @pytest.mark.parametrize("op_name, opcode, kind", [

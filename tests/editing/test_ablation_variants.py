@@ -2,10 +2,6 @@
 baseline is one edit whichever ablation lists it, missing meshes are skipped, and the figure is
 drawn whatever the results (one point, equal values, unmeasured numbers)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import gin
 import numpy as np
 import pytest
@@ -14,22 +10,13 @@ from signerf_jax import configs
 from signerf_jax.editing import commands, demo, stages
 from signerf_jax.editing.project import canonical_json
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "ablations.py"
 # A scene description as `synthetic_render.generate` writes it (only what the edit bindings read).
 SCENE = {"free_spot": {"center": [0.2, -0.3, 0.0], "radius": 0.3}, "up": [0.0, 0.0, 1.0]}
 
 
 @pytest.fixture(scope="module")
-def ablations_module():
-  # Registered before it runs: its dataclasses resolve their annotations through sys.modules
-  # (and its gin configurable must be registered once only, also after an earlier test left
-  # the gin config finalized, i.e. locked).
-  if "ablations" not in sys.modules:
-    spec = importlib.util.spec_from_file_location("ablations", SCRIPT)
-    sys.modules["ablations"] = importlib.util.module_from_spec(spec)
-    with gin.unlock_config():
-      spec.loader.exec_module(sys.modules["ablations"])
-  return sys.modules["ablations"]
+def ablations_module(experiment_script):
+  return experiment_script("ablations")
 
 
 @pytest.fixture(autouse=True)

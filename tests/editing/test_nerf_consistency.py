@@ -2,10 +2,6 @@
 comparing sheet propagation with independent edits (experiments/nerf_consistency.py): its arms
 are distinct edits that measure the NeRF, and its figure is drawn whatever the numbers."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import gin
 import numpy as np
 import pytest
@@ -15,7 +11,6 @@ from signerf_jax.editing import commands, demo, stages
 from signerf_jax.editing.project import canonical_json
 from signerf_jax.editing.stages import nerf_consistency
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "nerf_consistency.py"
 selection_rectangles = nerf_consistency._selection_rectangles  # pylint: disable=protected-access
 
 
@@ -26,12 +21,8 @@ def clear_gin():
 
 
 @pytest.fixture(scope="module")
-def experiment():
-  if "nerf_consistency_experiment" not in sys.modules:
-    spec = importlib.util.spec_from_file_location("nerf_consistency_experiment", SCRIPT)
-    sys.modules["nerf_consistency_experiment"] = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sys.modules["nerf_consistency_experiment"])
-  return sys.modules["nerf_consistency_experiment"]
+def experiment(experiment_script):
+  return experiment_script("nerf_consistency")
 
 
 @pytest.mark.parametrize("up, low, high", [((0, 0, 1), [0, 0, 0.1], [1, 1, 2]),

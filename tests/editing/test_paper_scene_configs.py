@@ -2,17 +2,12 @@
 parses, binds only existing configurables, holds its row of the paper's table, and refuses to
 run until the user's inputs (dataset, model, selection) are given, naming the missing binding."""
 
-import importlib.util
-from pathlib import Path
-
 import gin
 import pytest
 
 from signerf_jax import configs
 from signerf_jax.editing import commands
 from signerf_jax.errors import InputError
-
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "paper_scenes.py"
 
 # The paper's appendix table "Scene List", transcribed independently of the gin files:
 # scene -> (kind, (strength, ControlNet scale) of the first iteration, of the second or None,
@@ -41,20 +36,18 @@ SELECTION_INPUTS = {
 }
 
 
-def load_script():
-  spec = importlib.util.spec_from_file_location("paper_scenes", SCRIPT)
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module
-
-
 def user_inputs(scene: str) -> dict[str, str]:
   return {**COMMON_INPUTS, **SELECTION_INPUTS[PAPER_TABLE[scene][0]]}
 
 
-def parse_scene(scene: str, inputs: dict[str, str]) -> None:
-  configs.parse_gin(load_script().scene_gin_files(scene),
+def parse_scene(script, scene: str, inputs: dict[str, str]) -> None:
+  configs.parse_gin(script.scene_gin_files(scene),
                     [f"{name} = {value}" for name, value in inputs.items()])
+
+
+@pytest.fixture(scope="module")
+def script(experiment_script):
+  return experiment_script("paper_scenes")
 
 
 @pytest.fixture(autouse=True)
@@ -63,14 +56,14 @@ def clear_gin():
   gin.clear_config()
 
 
-def test_there_is_one_config_per_row_of_the_papers_table():
-  assert load_script().scene_names() == sorted(PAPER_TABLE)
+def test_there_is_one_config_per_row_of_the_papers_table(script):
+  assert script.scene_names() == sorted(PAPER_TABLE)
 
 
 @pytest.mark.parametrize("scene", sorted(PAPER_TABLE))
-def test_a_scene_binds_its_row_of_the_table(scene):
+def test_a_scene_binds_its_row_of_the_table(script, scene):
   kind, first, second, guidance = PAPER_TABLE[scene]
-  parse_scene(scene, user_inputs(scene))
+  parse_scene(script, scene, user_inputs(scene))
   settings = commands.edit_settings()
   edit, selection, sheet = settings.edit, settings.selection, settings.sheet
   assert edit.prompt and edit.data == "/data/scene" and edit.model == "/models/sdxl"
@@ -89,17 +82,18 @@ def test_a_scene_binds_its_row_of_the_table(scene):
 
 
 @pytest.mark.parametrize("scene", ["bear_grizzly", "person_batman", "field_cow"])
-def test_every_missing_user_input_is_named(scene):
+def test_every_missing_user_input_is_named(script, scene):
   for missing in user_inputs(scene):
     inputs = {name: value for name, value in user_inputs(scene).items() if name != missing}
     with pytest.raises(InputError, match=f"{missing} set to `%gin.REQUIRED`") as error:
-      parse_scene(scene, inputs)
+      parse_scene(script, scene, inputs)
     assert "paper_scenes" in error.value.path
 
 
-def test_the_script_stops_before_writing_anything_without_the_users_inputs(tmp_path, capsys):
+def test_the_script_stops_before_writing_anything_without_the_users_inputs(script, tmp_path,
+                                                                          capsys):
   out, results = tmp_path / "edit", tmp_path / "results"
-  code = load_script().main(["--scene", "bear_grizzly", "--out", str(out),
+  code = script.main(["--scene", "bear_grizzly", "--out", str(out),
                              "--results", str(results), "--model", str(tmp_path)])
   assert code == 2
   assert "set to `%gin.REQUIRED` but not subsequently overridden" in capsys.readouterr().err

@@ -3,24 +3,16 @@ inside their masks. A stand-in generator paints each sample's mask one colour, s
 have known values."""
 
 import argparse
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "sheet_layouts.py"
 SIZE = 8
 
 
 @pytest.fixture(scope="module")
-def experiment():
-  if "sheet_layouts_experiment" not in sys.modules:
-    spec = importlib.util.spec_from_file_location("sheet_layouts_experiment", SCRIPT)
-    sys.modules["sheet_layouts_experiment"] = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sys.modules["sheet_layouts_experiment"])
-  return sys.modules["sheet_layouts_experiment"]
+def experiment(experiment_script):
+  return experiment_script("sheet_layouts")
 
 
 class OneColourPerSample:

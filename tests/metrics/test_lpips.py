@@ -8,9 +8,7 @@ so a working torchvision) is importable, `test_matches_installed_lpips_package` 
 against it, and `test_vgg_stand_in_matches_torchvision` checks the substitute layer by layer.
 """
 
-import importlib.util
 import re
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +25,6 @@ import lpips_reference  # pylint: disable=g-import-not-at-top,wrong-import-posit
 pytestmark = pytest.mark.parity
 
 TOLERANCE = dict(atol=1e-5, rtol=0)
-CONVERSION_SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "convert_lpips_weights.py"
 BATCH, HEIGHT, WIDTH = 3, 32, 24
 
 
@@ -128,16 +125,15 @@ def test_no_recompilation_for_new_images(params):
   assert lpips.lpips_distance._cache_size() == cache_size  # pylint: disable=protected-access
 
 
-def test_conversion_script_reads_torchvision_and_lpips_files(reference, params, tmp_path):
+def test_conversion_script_reads_torchvision_and_lpips_files(reference, params, tmp_path,
+                                                             experiment_script):
   tensors = {name: torch.from_numpy(value) for name, value in flax_tensors(reference).items()}
   vgg16 = {name: value for name, value in tensors.items() if name.startswith("features.")}
   vgg16["classifier.6.bias"] = torch.zeros(1000)  # Present in torchvision's file, not needed.
   torch.save(vgg16, tmp_path / "vgg16.pth")
   torch.save({name: value for name, value in tensors.items() if name.startswith("lin")},
              tmp_path / "vgg.pth")
-  spec = importlib.util.spec_from_file_location("convert_lpips_weights", CONVERSION_SCRIPT)
-  script = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(script)
+  script = experiment_script("convert_lpips_weights")
   output = tmp_path / "out" / "lpips.safetensors"
   assert script.main(["--vgg16", str(tmp_path / "vgg16.pth"), "--lin", str(tmp_path / "vgg.pth"),
                       "--output", str(output)]) == 0
