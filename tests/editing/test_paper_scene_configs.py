@@ -94,7 +94,7 @@ def test_the_script_stops_before_writing_anything_without_the_users_inputs(scrip
                                                                           capsys):
   out, results = tmp_path / "edit", tmp_path / "results"
   code = script.main(["--scene", "bear_grizzly", "--out", str(out),
-                             "--results", str(results), "--model", str(tmp_path)])
+                      "--results", str(results), "--model", str(tmp_path)])
   assert code == 2
   assert "set to `%gin.REQUIRED` but not subsequently overridden" in capsys.readouterr().err
   assert not out.exists() and not results.exists()
