@@ -59,6 +59,7 @@ def test_a_run_is_summarised_as_quality_and_time(swept):
                       - stages["evaluate"])
   quality = first["quality"]
   assert math.isfinite(quality["background_psnr"]) and 0 <= quality["shape_iou"] <= 1
+  assert 0 <= quality["edited_images_shape_iou"] <= 1
   assert quality["clip_directional_similarity"] is None  # no CLIP weights given
   per_view = first["seconds_per_view"]
   assert per_view["sheet_propagated"] > 0 and per_view["independent"] > 0
@@ -77,6 +78,8 @@ def test_edit_quality_leaves_out_what_was_not_measured():
 def test_edit_quality_reports_the_edited_nerfs_fit_and_solidity():
   quality = sweeps.edit_quality({"nerf_consistency": {
       "fit_psnr": {"mean": 29.0, "interval": [28.5, 29.5]},
-      "solidity": {"iou": {"mean": 0.81}, "mean_opacity": {"mean": 0.93}}}})
+      "solidity": {"iou": {"mean": 0.81}, "mean_opacity": {"mean": 0.93}}},
+      "shape_iou": {"image_set": 0.72, "nerf_renders": 0.68}})
   assert (quality["fit_psnr"], quality["solidity_iou"], quality["solidity_opacity"]) == (
       29.0, 0.81, 0.93)
+  assert (quality["edited_images_shape_iou"], quality["shape_iou"]) == (0.72, 0.68)

@@ -65,7 +65,8 @@ def edit_quality(metrics: dict[str, Any]) -> dict[str, float | None]:
       the paper reports -15% and -70% with LoFTR).
     prompt_color_share: share of edited-NeRF renders whose selection shows the prompt's colour.
     shape_iou: IoU of the pixels the edit changed in edited-NeRF renders with the proxy's
-      silhouette (proxy selections).
+      silhouette (proxy selections); edited_images_shape_iou: the same of the edited training
+      images the NeRF was trained on (how closely the diffusion model followed the proxy).
     fit_psnr, solidity_iou, solidity_opacity: the edited NeRF's 3D consistency (issue 19,
       proxy selections): its PSNR against its own edited training images inside the selection,
       and, at held-out cameras, the IoU of its opacity (alpha > 0.5) with the proxy's silhouette
@@ -81,6 +82,7 @@ def edit_quality(metrics: dict[str, Any]) -> dict[str, float | None]:
                                              "mean_epipolar_inliers"),
       "prompt_color_share": _get(metrics, "prompt_color_adherence", "nerf_renders", "share"),
       "shape_iou": _get(metrics, "shape_iou", "nerf_renders"),
+      "edited_images_shape_iou": _get(metrics, "shape_iou", "image_set"),
       "fit_psnr": _get(metrics, "nerf_consistency", "fit_psnr", "mean"),
       "solidity_iou": _get(metrics, "nerf_consistency", "solidity", "iou", "mean"),
       "solidity_opacity": _get(metrics, "nerf_consistency", "solidity", "mean_opacity", "mean"),
