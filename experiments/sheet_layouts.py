@@ -84,34 +84,35 @@ def paint_sheets(generator: generation.Generator, tiles: dict[str, np.ndarray], 
     inputs = generation.SheetInputs.from_tiles(tiles["render"][views], tiles["control"][views],
                                                tiles["mask"][views], layout)
     sheets = generation.generate_sheets(generator, inputs, recipes)
-    for recipe in recipes:
-      painted = np.asarray(sheet_lib.disassemble(sheets[recipe], layout)[0])
-      for tile, view in enumerate(views):
-        if recipe == recipes[0] and view not in shown:
-          first[view] = painted[tile]
-          shown.add(view)
-      groups.append([view_measures(painted[tile], tiles["render"][view],
-                                   tiles["mask"][view]) for tile, view in enumerate(views)])
+    painted = {recipe: np.asarray(sheet_lib.disassemble(sheets[recipe], layout)[0])
+               for recipe in recipes}
+    for tile, view in enumerate(views):
+      if view not in shown:
+        first[view] = painted[recipes[0]][tile]
+        shown.add(view)
+    groups += [[view_measures(painted[recipe][tile], tiles["render"][view], tiles["mask"][view])
+                for tile, view in enumerate(views)] for recipe in recipes]
   return groups, first
 
 
 def paint_singles(generator: generation.Generator, tiles: dict[str, np.ndarray],
                   seeds: list[int]) -> tuple[list[list[tuple]], np.ndarray]:
   """Every reference view alone, each seed's views with keys `generation.view_key(seed, view)`:
-  (per seed, its views' measures; the first seed's views [M, h, w, 3])."""
-  count, groups, first = len(tiles["render"]), [], None
-  for seed in seeds:
-    keys = np.stack([generation.view_key(seed, view) for view in range(count)])
-    painted = np.concatenate([
-        generator(tiles["render"][start:start + generator.batch_size],
-                  tiles["mask"][start:start + generator.batch_size, ..., None],
-                  tiles["control"][start:start + generator.batch_size, ..., None],
-                  keys[start:start + generator.batch_size])
-        for start in range(0, count, generator.batch_size)])
-    first = painted if first is None else first
-    groups.append([view_measures(painted[view], tiles["render"][view], tiles["mask"][view])
-                   for view in range(count)])
-  return groups, first
+  (per seed, its views' measures; the first seed's views [M, h, w, 3]). All seeds' views go
+  through the generator as one stream, so only the last batch is padded."""
+  count = len(tiles["render"])
+  views = np.tile(np.arange(count), len(seeds))
+  keys = np.stack([generation.view_key(seed, view) for seed in seeds for view in range(count)])
+  size = generator.batch_size
+  painted = np.concatenate([
+      generator(tiles["render"][views[start:start + size]],
+                tiles["mask"][views[start:start + size], ..., None],
+                tiles["control"][views[start:start + size], ..., None], keys[start:start + size])
+      for start in range(0, len(views), size)])
+  painted = painted.reshape((len(seeds),) + tiles["render"].shape)
+  groups = [[view_measures(one_seed[view], tiles["render"][view], tiles["mask"][view])
+             for view in range(count)] for one_seed in painted]
+  return groups, painted[0]
 
 
 def parse_layout(text: str) -> tuple[int, int]:
