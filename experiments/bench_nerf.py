@@ -29,7 +29,7 @@ from typing import Any, Sequence
 import gin
 import numpy as np
 
-from signerf_jax import configs, files
+from signerf_jax import allocator, configs, files
 from signerf_jax.data import load_dataset
 from signerf_jax.editing import figures
 from signerf_jax.nerf import capacity, evaluate, render, train, training_run
@@ -185,6 +185,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
 
 
 def main() -> None:
+  allocator.keep_freed_memory()  # As `signerf train` and `signerf render` do.
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   configs.add_gin_arguments(parser)
   parser.add_argument("--name", default="bench_nerf", help="output file stem in results/")

@@ -34,7 +34,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from signerf_jax import camera, files
+from signerf_jax import allocator, camera, files
 from signerf_jax.metrics import image as image_metrics
 from signerf_jax.nerf import evaluate, ray_samples, render, train, training_run
 from signerf_jax.nerf import model as nerf_model
@@ -155,6 +155,7 @@ def measure_run(run_dir: Path, views: int, warmup_steps: int, steps: int,
 
 
 def main() -> None:
+  allocator.keep_freed_memory()  # As `signerf train` and `signerf render` do.
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN_DIR",
                       help="a trained run to measure (repeatable)")

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from signerf_jax import files
+from signerf_jax import allocator, files
 from signerf_jax.errors import InputError
 
 # name -> (module implementing it, one-line help). Stages add themselves here.
@@ -45,6 +45,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
              "insert a cow into a generated scene with the shipped model, end to end"),
 }
 
+# Commands whose process keeps the memory XLA frees (signerf_jax.allocator): a NeRF step or a
+# rendered chunk frees and re-faults its buffers on every call. Not the commands that sample the
+# diffusion model: its sampler runs slower with glibc's one arena (experiments/results/
+# bench_allocator.json).
+KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render")
+
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(prog="signerf", description=__doc__.splitlines()[0])
@@ -75,6 +81,8 @@ def use_compilation_cache() -> None:
 def main(argv: Sequence[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser(argv).parse_args(argv)
+  if args.command in KEEP_FREED_MEMORY_COMMANDS:
+    allocator.keep_freed_memory()  # Before JAX starts its threads.
   module = importlib.import_module(args.module_name)
   try:
     if getattr(args, "out", None):  # Every command names the directory it writes `--out`.

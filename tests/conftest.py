@@ -1,6 +1,6 @@
 """Shared test plumbing: the ../shared/data location, the `shared_data` marker, a compilation
-cache private to the session, a broken torchvision hidden from transformers, and experiment
-scripts imported as modules."""
+cache private to the session, glibc's allocator left as it is, a broken torchvision hidden from
+transformers, and experiment scripts imported as modules."""
 
 from __future__ import annotations
 
@@ -23,6 +23,9 @@ import pytest
 SESSION_COMPILATION_CACHE = tempfile.mkdtemp(prefix="signerf_jax_tests_xla_")
 os.environ["JAX_COMPILATION_CACHE_DIR"] = SESSION_COMPILATION_CACHE
 os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "true")
+# `signerf_jax.cli.main` makes its process keep freed memory (signerf_jax.allocator); many tests
+# run it inside the test process, whose memory use should not depend on which test ran first.
+os.environ.setdefault("SIGNERF_KEEP_FREED_MEMORY", "0")
 
 REPOSITORY_ROOT = Path(__file__).resolve().parent.parent
 # Real scenes and meshes live outside the project; SIGNERF_SHARED_DATA overrides the location.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import pytest
 
-from signerf_jax import cli
+from signerf_jax import allocator, cli
 
 
 @pytest.fixture
@@ -42,3 +42,16 @@ def test_a_threshold_chosen_for_jax_is_kept(cache_settings, monkeypatch):
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.5)
   cli.use_compilation_cache()
   assert jax.config.jax_persistent_cache_min_compile_time_secs == pytest.approx(2.5)
+
+
+def test_the_commands_that_only_train_or_render_a_nerf_keep_freed_memory(monkeypatch, tmp_path):
+  calls = []
+  monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append(True))
+  assert set(cli.KEEP_FREED_MEMORY_COMMANDS) <= set(cli.COMMANDS)
+  # A missing dataset or run stops each command with an input error, after the allocator step.
+  assert cli.main(["train", "--data", str(tmp_path / "missing"), "--out",
+                   str(tmp_path / "run")]) == 2
+  assert calls == [True]
+  assert cli.main(["preview", "--run", str(tmp_path / "missing"), "--out",
+                   str(tmp_path / "edit")]) == 2
+  assert calls == [True]  # The diffusion sampler runs slower with one arena.

@@ -1,0 +1,235 @@
+"""What keeping freed memory (`signerf_jax.allocator`) saves: the same work in fresh processes with
+glibc's default allocator and with the setting the `signerf` command and the experiments apply,
+alternating, so a busy machine slows both alike.
+
+  python experiments/bench_allocator.py \
+      [--workloads nerf_train nerf_budget nerf_render unet_forward update] [--rounds 2] \
+      [--nerf_steps 300] [--budget_seconds 300] [--name bench_allocator]
+
+Workloads (each child process runs one and reports it as one JSON line):
+  * nerf_train: `signerf train` on Blender lego at 100 px for `nerf_steps` steps; its training
+    seconds (compilation and checkpoint writes excluded) and held-out PSNR;
+  * nerf_budget: `signerf train --max_seconds budget_seconds` on the same lego: the steps it
+    reaches and their held-out PSNR (what a time-budgeted user gets);
+  * nerf_render: `signerf render --split all` of a lego run trained 50 steps first (untimed):
+    the command's wall seconds (its compilation included) and a checksum of the images;
+  * unet_forward: an SD 1.5-shaped UNet (random weights, batch 2, latent 64 x 64), the median of
+    three jitted forwards after the one that compiles, and a checksum of its output;
+  * update: the image set update with the shipped model (one view per call, 2 x 3 sheet), seconds
+    per view over four views after the call that compiles.
+Per child: wall seconds of the work, the process's user and system CPU seconds and minor page
+faults over it, and its peak resident memory. Writes experiments/results/NAME.json with the
+machine and its load, and NAME.png: each workload's speed-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from signerf_jax import allocator, files
+
+import machine  # experiments/machine.py (this script's directory is on sys.path)
+import plotting
+
+RESULTS = Path(__file__).resolve().parent / "results"
+LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "nerf_synthetic" / "lego"
+MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
+WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
+
+
+def signerf(*arguments: str) -> None:
+  from signerf_jax import cli  # pylint: disable=g-import-not-at-top
+  status = cli.main(list(arguments))
+  if status:
+    raise RuntimeError(f"signerf {arguments[0]} exited with {status}")
+
+
+def train_lego(out: Path, *options: str) -> dict[str, Any]:
+  """Trains lego at 100 px into `out` with `signerf train` options; returns its eval.json."""
+  signerf("train", "--data", str(LEGO), "--out", str(out), "--downscale", "8", *options)
+  return json.loads((out / "eval.json").read_text())
+
+
+def nerf_train(steps: int) -> dict[str, Any]:
+  with tempfile.TemporaryDirectory() as directory:
+    evaluation = train_lego(Path(directory) / "run", "--gin_param", f"TrainConfig.steps = {steps}")
+  return {"seconds": evaluation["seconds_trained"],
+          "result": round(evaluation["held_out"]["psnr"], 6)}
+
+
+def nerf_budget(budget_seconds: float) -> dict[str, Any]:
+  with tempfile.TemporaryDirectory() as directory:
+    evaluation = train_lego(Path(directory) / "run", "--max_seconds", str(budget_seconds))
+  return {"seconds": evaluation["seconds_trained"], "steps": evaluation["step"],
+          "result": round(evaluation["held_out"]["psnr"], 6)}
+
+
+def nerf_render() -> dict[str, Any]:
+  with tempfile.TemporaryDirectory() as directory:
+    run, renders = Path(directory) / "run", Path(directory) / "renders"
+    train_lego(run, "--gin_param", "TrainConfig.steps = 50")
+    started = time.perf_counter()
+    signerf("render", "--run", str(run), "--out", str(renders), "--split", "all")
+    seconds = time.perf_counter() - started
+    digest = hashlib.sha256()
+    for image in sorted(renders.rglob("*.png")):
+      digest.update(image.read_bytes())
+  return {"seconds": seconds, "result": digest.hexdigest()[:16]}
+
+
+def unet_forward() -> dict[str, Any]:
+  import jax  # pylint: disable=g-import-not-at-top
+  import jax.numpy as jnp  # pylint: disable=g-import-not-at-top
+  import numpy as np  # pylint: disable=g-import-not-at-top
+  from bench_diffusion import SD15_UNET  # pylint: disable=g-import-not-at-top
+  from signerf_jax.diffusion import model_configs, weights  # pylint: disable=g-import-not-at-top
+  from signerf_jax.diffusion.unet import UNet2DCondition  # pylint: disable=g-import-not-at-top
+
+  unet = UNet2DCondition(model_configs.UNetConfig.from_dict(SD15_UNET))
+  params = weights.random_params(unet)
+  rng = np.random.default_rng(0)
+  arguments = (params, jnp.asarray(rng.standard_normal((2, 64, 64, 4)), jnp.float32),
+               jnp.full((2,), 500), jnp.asarray(rng.standard_normal((2, 77, 768)), jnp.float32))
+  forward = jax.jit(lambda params, sample, timesteps, context: unet.apply(
+      {"params": params}, sample, timesteps, context))
+  output = forward(*arguments).block_until_ready()  # Compiles.
+  seconds = []
+  for _ in range(3):
+    started = time.perf_counter()
+    forward(*arguments).block_until_ready()
+    seconds.append(time.perf_counter() - started)
+  return {"seconds": statistics.median(seconds),
+          "result": round(float(jnp.sum(jnp.abs(output))), 3)}
+
+
+def update() -> dict[str, Any]:
+  import numpy as np  # pylint: disable=g-import-not-at-top
+  import bench_update  # pylint: disable=g-import-not-at-top
+  from signerf_jax.diffusion.pipeline import GenerationOptions  # pylint: disable=g-import-not-at-top
+  from signerf_jax.editing import generation  # pylint: disable=g-import-not-at-top
+  from signerf_jax.editing import update as image_set_update  # pylint: disable=g-import-not-at-top
+  from signerf_jax.editing.config import DEFAULT_MODEL_DIR  # pylint: disable=g-import-not-at-top
+  from signerf_jax.editing.sheet import SheetLayout  # pylint: disable=g-import-not-at-top
+
+  model = str(DEFAULT_MODEL_DIR)
+  tile = generation.native_tile_size(model)
+  rng = np.random.default_rng(0)
+  views = bench_update.random_views(4, tile, rng)
+  sheet_rgb = rng.random((2 * tile, 3 * tile, 3), np.float32)
+  sheet_control = rng.random((2 * tile, 3 * tile, 1), np.float32)
+  generator = generation.load_generator(model, "", "", "a red cow", "",
+                                        GenerationOptions(guidance_scale=5.0), 1)
+  edit_batch = image_set_update.batch_editor(generator, SheetLayout(2, 3, -1, -1, tile, tile),
+                                             "sheet", sheet_rgb, sheet_control)
+  return {"seconds": bench_update.seconds_per_view(edit_batch, views, 1), "result": None}
+
+
+def run_child(args: argparse.Namespace) -> dict[str, Any]:
+  """Runs the workload `args.child` in this process (the allocator set as the environment says)
+  and returns its measurements."""
+  kept = allocator.keep_freed_memory()
+  work: Callable[[], dict[str, Any]] = {
+      "nerf_train": lambda: nerf_train(args.nerf_steps),
+      "nerf_budget": lambda: nerf_budget(args.budget_seconds), "nerf_render": nerf_render,
+      "unet_forward": unet_forward, "update": update}[args.child]
+  before = resource.getrusage(resource.RUSAGE_SELF)
+  measured = work()
+  after = resource.getrusage(resource.RUSAGE_SELF)
+  return {**measured, "keeps_freed_memory": kept,
+          "process_user_seconds": round(after.ru_utime - before.ru_utime, 2),
+          "process_system_seconds": round(after.ru_stime - before.ru_stime, 2),
+          "minor_page_faults": after.ru_minflt - before.ru_minflt,
+          "peak_rss_bytes": after.ru_maxrss * 1024}
+
+
+def measure_in_child(workload: str, mode: str, args: argparse.Namespace) -> dict[str, Any]:
+  environment = {**os.environ, allocator.ENVIRONMENT_VARIABLE: MODES[mode]}
+  completed = subprocess.run(
+      [sys.executable, __file__, "--child", workload, "--nerf_steps", str(args.nerf_steps),
+       "--budget_seconds", str(args.budget_seconds)],
+      env=environment, capture_output=True, text=True, check=False)
+  if completed.returncode:
+    raise RuntimeError(f"{workload} ({mode}) failed:\n{completed.stderr[-3000:]}")
+  return json.loads(completed.stdout.strip().splitlines()[-1])
+
+
+def summarise(workload: str, runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+  """Medians per mode; for a fixed amount of work the ratio of seconds and whether every run
+  gave the same result, for a time budget (nerf_budget) the steps and PSNR reached."""
+  fields = ("seconds", "process_system_seconds", "minor_page_faults", "peak_rss_bytes")
+  if workload == "nerf_budget":
+    fields += ("steps", "result")
+  summary: dict[str, Any] = {mode: {field: statistics.median(run[field] for run in runs[mode])
+                                    for field in fields} for mode in MODES}
+  if workload == "nerf_budget":
+    summary["kept_over_default_steps"] = round(
+        summary["keep_freed_memory"]["steps"] / summary["glibc_default"]["steps"], 3)
+  else:
+    summary["default_over_kept_seconds"] = round(
+        summary["glibc_default"]["seconds"] / summary["keep_freed_memory"]["seconds"], 3)
+    summary["same_results"] = len({run["result"] for mode in MODES for run in runs[mode]}) == 1
+  return summary
+
+
+def speedups(workload: str, runs: dict[str, list[dict[str, Any]]]) -> list[float]:
+  """Per round: how much faster keeping freed memory was (default seconds over kept seconds;
+  for a time budget, kept steps over default steps)."""
+  pairs = zip(runs["glibc_default"], runs["keep_freed_memory"])
+  if workload == "nerf_budget":
+    return [kept["steps"] / default["steps"] for default, kept in pairs]
+  return [default["seconds"] / kept["seconds"] for default, kept in pairs]
+
+
+def write_figure(path: Path, result: dict[str, Any]) -> None:
+  """One row per workload: the median speed-up, the line spanning the rounds'."""
+  rows = []
+  for workload, measured in result["workloads"].items():
+    ratios = speedups(workload, measured["runs"])
+    rows.append((workload, statistics.median(ratios), min(ratios), max(ratios)))
+  plotting.write_panels(path, [plotting.interval_chart(
+      "keeping freed memory: speed-up", rows, "x glibc's default (1 = same)", width=520)])
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--workloads", nargs="+", choices=WORKLOADS, default=list(WORKLOADS))
+  parser.add_argument("--rounds", type=int, default=2, help="child runs per workload and mode")
+  parser.add_argument("--nerf_steps", type=int, default=300, help="nerf_train's steps")
+  parser.add_argument("--budget_seconds", type=float, default=300.0,
+                      help="nerf_budget's training seconds")
+  parser.add_argument("--name", default="bench_allocator", help="results/<name>.json")
+  parser.add_argument("--child", choices=WORKLOADS, help=argparse.SUPPRESS)
+  args = parser.parse_args()
+  if args.child:
+    print(json.dumps(run_child(args)), flush=True)
+    return
+  result: dict[str, Any] = {"machine": machine.record(), "rounds": args.rounds,
+                            "nerf_steps": args.nerf_steps,
+                            "budget_seconds": args.budget_seconds, "workloads": {}}
+  for workload in args.workloads:
+    runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode in MODES}
+    for _ in range(args.rounds):
+      for mode in MODES:
+        runs[mode].append(measure_in_child(workload, mode, args))
+        print(workload, mode, runs[mode][-1], flush=True)
+    result["workloads"][workload] = {"runs": runs, "summary": summarise(workload, runs)}
+    print(workload, result["workloads"][workload]["summary"], flush=True)
+  result["machine"]["load_average_at_end"] = os.getloadavg()
+  files.write_json(RESULTS / f"{args.name}.json", result)
+  write_figure(RESULTS / f"{args.name}.png", result)
+  print(f"bench_allocator: results in {RESULTS / args.name}.{{json,png}}")
+
+
+if __name__ == "__main__":
+  main()

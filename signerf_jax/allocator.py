@@ -1,0 +1,61 @@
+"""Makes the C allocator keep the memory a jitted call frees, so the next call reuses it.
+
+XLA:CPU allocates each call's outputs and temporary buffers with `malloc` and frees them when the
+call returns. glibc gives large blocks (above its mmap threshold, at most 32 MiB, and anything
+over 64 MiB that a worker thread's arena cannot hold) back to the kernel on `free`, so the next
+call's buffers arrive as fresh pages that the kernel maps and zeroes one 4-KiB page fault at a
+time. A NeRF training step frees and re-faults hundreds of MiB every step: on this project's
+2-core VMs that kernel time was about a third of NeRF training (README, "Performance";
+`experiments/bench_allocator.py` measures it).
+
+`keep_freed_memory()` sets glibc's `mallopt` so that every thread allocates from the one main
+heap, large blocks come from that heap instead of `mmap`, and the heap is trimmed only past
+2 GiB of free space at its top. Freed pages then stay mapped and are reused; the results are the
+same bytes. The costs: the process keeps the memory it has used (its peak, plus what
+fragmentation adds) until it exits, and threads that allocate often contend for the one heap,
+which makes the diffusion sampler slower. So the commands that only train or render a NeRF call
+it first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`); library code never does.
+SIGNERF_KEEP_FREED_MEMORY=0 in the environment leaves the allocator as it was. Elsewhere than
+glibc (macOS, musl) it does nothing.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+
+# glibc's malloc.h parameter numbers.
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_MAX = -4
+_M_ARENA_MAX = -8
+SETTINGS = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, 2**31 - 1))
+ENVIRONMENT_VARIABLE = "SIGNERF_KEEP_FREED_MEMORY"
+
+_kept = False
+
+
+def _glibc() -> ctypes.CDLL | None:
+  """The process's C library when it is glibc (it has `mallopt`), else None."""
+  try:
+    library = ctypes.CDLL(None)
+  except OSError:
+    return None
+  if not (hasattr(library, "gnu_get_libc_version") and hasattr(library, "mallopt")):
+    return None
+  library.mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+  library.mallopt.restype = ctypes.c_int
+  return library
+
+
+def keep_freed_memory() -> bool:
+  """Applies the settings above unless the environment says 0 or the C library is not glibc;
+  returns whether the process now keeps freed memory. Call it before JAX starts its threads
+  (their arenas exist from then on); calling it again changes nothing."""
+  global _kept
+  if _kept or os.environ.get(ENVIRONMENT_VARIABLE, "1").strip() == "0":
+    return _kept
+  library = _glibc()
+  if library is None:
+    return False
+  _kept = all([library.mallopt(option, value) == 1 for option, value in SETTINGS])
+  return _kept
