@@ -46,10 +46,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 # Commands whose process keeps the memory XLA frees (signerf_jax.allocator): a NeRF step or a
-# rendered chunk frees and re-faults its buffers on every call. Not the commands that sample the
-# diffusion model: its sampler runs slower with glibc's one arena (experiments/results/
-# bench_allocator.json).
-KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render")
+# rendered chunk frees and re-faults its buffers on every call. `edit` and `demo` too: their
+# time-budgeted NeRF stages run ~1.3-1.45x the steps, which outweighs their sampling stages
+# running slower with glibc's one arena; the commands that only sample (`preview`, `update`,
+# `view`) leave the allocator as it is (README, "Performance").
+KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "edit", "demo")
 
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:

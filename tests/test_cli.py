@@ -44,7 +44,7 @@ def test_a_threshold_chosen_for_jax_is_kept(cache_settings, monkeypatch):
   assert jax.config.jax_persistent_cache_min_compile_time_secs == pytest.approx(2.5)
 
 
-def test_the_commands_that_only_train_or_render_a_nerf_keep_freed_memory(monkeypatch, tmp_path):
+def test_the_commands_that_train_a_nerf_keep_freed_memory(monkeypatch, tmp_path):
   calls = []
   monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append(True))
   assert set(cli.KEEP_FREED_MEMORY_COMMANDS) <= set(cli.COMMANDS)
