@@ -1,6 +1,6 @@
 """What keeping freed memory (`signerf_jax.allocator`) saves: the same work in fresh processes with
-glibc's default allocator and with the setting the `signerf` command and the experiments apply,
-alternating, so a busy machine slows both alike.
+glibc's default allocator and with the setting that `signerf train`, `finetune`, `render`, `edit`
+and `demo` apply, alternating, so a busy machine slows both alike.
 
   python experiments/bench_allocator.py \
       [--workloads nerf_train nerf_budget nerf_render unet_forward update] [--rounds 2] \
@@ -39,13 +39,18 @@ from typing import Any, Callable
 
 from signerf_jax import allocator, files
 
-import machine  # experiments/machine.py (this script's directory is on sys.path)
-import plotting
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
+import plotting  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
-LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "nerf_synthetic" / "lego"
+LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" /
+                          "data")) / "nerf_synthetic" / "lego"
 MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
 WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
+
+
+# The workloads import what they need themselves, so that a child loads only its own modules.
 
 
 def signerf(*arguments: str) -> None:
