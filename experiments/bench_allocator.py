@@ -37,11 +37,24 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from signerf_jax import allocator, files
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from signerf_jax import allocator, cli, files
+from signerf_jax.diffusion import model_configs, weights
+from signerf_jax.diffusion.pipeline import GenerationOptions
+from signerf_jax.diffusion.unet import UNet2DCondition
+from signerf_jax.editing import generation
+from signerf_jax.editing import update as image_set_update
+from signerf_jax.editing.config import DEFAULT_MODEL_DIR
+from signerf_jax.editing.sheet import SheetLayout
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_update  # pylint: disable=wrong-import-position
 import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
+from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
 LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" /
@@ -50,11 +63,7 @@ MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
 WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
 
 
-# The workloads import what they need themselves, so that a child loads only its own modules.
-
-
 def signerf(*arguments: str) -> None:
-  from signerf_jax import cli  # pylint: disable=g-import-not-at-top
   status = cli.main(list(arguments))
   if status:
     raise RuntimeError(f"signerf {arguments[0]} exited with {status}")
@@ -94,12 +103,6 @@ def nerf_render() -> dict[str, Any]:
 
 
 def unet_forward() -> dict[str, Any]:
-  import jax  # pylint: disable=g-import-not-at-top
-  import jax.numpy as jnp  # pylint: disable=g-import-not-at-top
-  import numpy as np  # pylint: disable=g-import-not-at-top
-  from bench_diffusion import SD15_UNET  # pylint: disable=g-import-not-at-top
-  from signerf_jax.diffusion import model_configs, weights  # pylint: disable=g-import-not-at-top
-  from signerf_jax.diffusion.unet import UNet2DCondition  # pylint: disable=g-import-not-at-top
 
   unet = UNet2DCondition(model_configs.UNetConfig.from_dict(SD15_UNET))
   params = weights.random_params(unet)
@@ -119,13 +122,6 @@ def unet_forward() -> dict[str, Any]:
 
 
 def update() -> dict[str, Any]:
-  import numpy as np  # pylint: disable=g-import-not-at-top
-  import bench_update  # pylint: disable=g-import-not-at-top
-  from signerf_jax.diffusion.pipeline import GenerationOptions  # pylint: disable=g-import-not-at-top
-  from signerf_jax.editing import generation  # pylint: disable=g-import-not-at-top
-  from signerf_jax.editing import update as image_set_update  # pylint: disable=g-import-not-at-top
-  from signerf_jax.editing.config import DEFAULT_MODEL_DIR  # pylint: disable=g-import-not-at-top
-  from signerf_jax.editing.sheet import SheetLayout  # pylint: disable=g-import-not-at-top
 
   model = str(DEFAULT_MODEL_DIR)
   tile = generation.native_tile_size(model)
