@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, ClassVar, Mapping, Self
 
 from signerf_jax import files
 from signerf_jax.diffusion import model_options
@@ -54,6 +54,20 @@ class BackboneConfig:
   addition_time_embed_dim: int | None
   projection_class_embeddings_input_dim: int | None
   conv_in_kernel: int
+
+  # Set by each model, with `own_fields(options, path) -> dict` (its own fields, after its own
+  # checks): its option tables (defaults, supported values; `model_options`) and mid blocks.
+  OPTION_TABLES: ClassVar[tuple[Mapping[str, Any], Mapping[str, Any]]]
+  MID_BLOCK_TYPES: ClassVar[tuple[str | None, ...]]
+
+  @classmethod
+  def from_dict(cls, raw: Mapping[str, Any], path: str | os.PathLike = "config.json") -> Self:
+    """The config of diffusers' config.json dict `raw` (`path` is named in errors): the model's
+    own options are checked first (`own_fields`), then the shared blocks."""
+    path = Path(path)
+    options = model_options.read_options(raw, path, *cls.OPTION_TABLES)
+    own_fields = cls.own_fields(options, path)
+    return cls(**_backbone_fields(options, path, cls.MID_BLOCK_TYPES), **own_fields)
 
 
 def _check_block_types(options: dict[str, Any], field: str, implemented: tuple[str, str],
@@ -157,23 +171,21 @@ class UNetConfig(BackboneConfig):
   conv_out_kernel: int
   center_input_sample: bool
 
+  OPTION_TABLES: ClassVar = (model_options.UNET_DEFAULTS, model_options.UNET_FIXED)
+  MID_BLOCK_TYPES: ClassVar = (CROSS_ATTENTION_MID, PLAIN_MID, None)
+
   @classmethod
-  def from_dict(cls, raw: Mapping[str, Any], path: str | os.PathLike = "config.json"
-                ) -> "UNetConfig":
-    path = Path(path)
-    options = model_options.read_options(raw, path, model_options.UNET_DEFAULTS,
-                                         model_options.UNET_FIXED)
-    fields = _backbone_fields(options, path, (CROSS_ATTENTION_MID, PLAIN_MID, None))
+  def own_fields(cls, options: dict[str, Any], path: Path) -> dict[str, Any]:
     up_types = options["up_block_types"]
-    if len(up_types) != len(fields["down_block_types"]):
+    if len(up_types) != len(options["down_block_types"]):
       raise InputError("needs as many entries as down_block_types", path, "up_block_types")
     _check_block_types(options, "up_block_types", (CROSS_ATTENTION_UP, PLAIN_UP), path)
     for name in ("conv_in_kernel", "conv_out_kernel"):
       if options[name] % 2 != 1:
         raise InputError("must be odd (same-size convolution)", path, name)
-    return cls(**fields, out_channels=options["out_channels"], up_block_types=up_types,
-               conv_out_kernel=options["conv_out_kernel"],
-               center_input_sample=bool(options["center_input_sample"]))
+    return dict(out_channels=options["out_channels"], up_block_types=up_types,
+                conv_out_kernel=options["conv_out_kernel"],
+                center_input_sample=bool(options["center_input_sample"]))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,22 +196,19 @@ class ControlNetConfig(BackboneConfig):
   conditioning_channel_order: str
   global_pool_conditions: bool
 
+  OPTION_TABLES: ClassVar = (model_options.CONTROLNET_DEFAULTS, model_options.CONTROLNET_FIXED)
+  MID_BLOCK_TYPES: ClassVar = (CROSS_ATTENTION_MID, PLAIN_MID)
+
   @classmethod
-  def from_dict(cls, raw: Mapping[str, Any], path: str | os.PathLike = "config.json"
-                ) -> "ControlNetConfig":
-    path = Path(path)
-    options = model_options.read_options(raw, path, model_options.CONTROLNET_DEFAULTS,
-                                         model_options.CONTROLNET_FIXED)
-    if not isinstance(options["layers_per_block"], int):
-      raise InputError("ControlNetModel takes one integer", path, "layers_per_block")
-    if not isinstance(options["cross_attention_dim"], int):
-      raise InputError("ControlNetModel takes one integer", path, "cross_attention_dim")
-    fields = _backbone_fields(options, path, (CROSS_ATTENTION_MID, PLAIN_MID))
-    return cls(**fields, conditioning_channels=options["conditioning_channels"],
-               conditioning_embedding_out_channels=tuple(
-                   options["conditioning_embedding_out_channels"]),
-               conditioning_channel_order=options["controlnet_conditioning_channel_order"],
-               global_pool_conditions=bool(options["global_pool_conditions"]))
+  def own_fields(cls, options: dict[str, Any], path: Path) -> dict[str, Any]:
+    for name in ("layers_per_block", "cross_attention_dim"):
+      if not isinstance(options[name], int):
+        raise InputError("ControlNetModel takes one integer", path, name)
+    return dict(conditioning_channels=options["conditioning_channels"],
+                conditioning_embedding_out_channels=tuple(
+                    options["conditioning_embedding_out_channels"]),
+                conditioning_channel_order=options["controlnet_conditioning_channel_order"],
+                global_pool_conditions=bool(options["global_pool_conditions"]))
 
 
 @dataclasses.dataclass(frozen=True)
