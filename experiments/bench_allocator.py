@@ -5,6 +5,7 @@ and `demo` apply, alternating, so a busy machine slows both alike.
   python experiments/bench_allocator.py \
       [--workloads nerf_train nerf_budget nerf_render unet_forward update] [--rounds 2] \
       [--nerf_steps 300] [--budget_seconds 300] [--name bench_allocator]
+  python experiments/bench_allocator.py --workloads viewer_frames --viewer_run RUN
 
 Workloads (each child process runs one and reports it as one JSON line):
   * nerf_train: `signerf train` on Blender lego at 100 px for `nerf_steps` steps; its training
@@ -16,7 +17,10 @@ Workloads (each child process runs one and reports it as one JSON line):
   * unet_forward: an SD 1.5-shaped UNet (random weights, batch 2, latent 64 x 64), the median of
     three jitted forwards after the one that compiles, and a checksum of its output;
   * update: the image set update with the shipped model (one view per call, 2 x 3 sheet), seconds
-    per view over four views after the call that compiles.
+    per view over four views after the call that compiles;
+  * viewer_frames (only when asked for, with `--viewer_run`, a trained run): `signerf view`'s
+    progressive frames of five training poses after one that compiles (`bench_viewer.bench_run`):
+    the median seconds to the finest frame, and a checksum of the last one.
 Per child: wall seconds of the work, the process's user and system CPU seconds and minor page
 faults over it, and its peak resident memory. Writes experiments/results/NAME.json with the
 machine and its load, and NAME.png: each workload's speed-up.
@@ -52,6 +56,7 @@ from signerf_jax.editing.sheet import SheetLayout
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_update  # pylint: disable=wrong-import-position
+import bench_viewer  # pylint: disable=wrong-import-position
 import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
 from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
@@ -61,6 +66,7 @@ LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().paren
                           "data")) / "nerf_synthetic" / "lego"
 MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
 WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
+VIEWER_VIEWS = 5
 
 
 def signerf(*arguments: str) -> None:
@@ -136,6 +142,12 @@ def update() -> dict[str, Any]:
   return {"seconds": bench_update.seconds_per_view(edit_batch, views, 1), "result": None}
 
 
+def viewer_frames(run: Path) -> dict[str, Any]:
+  measured, frames = bench_viewer.bench_run(run, VIEWER_VIEWS)
+  return {"seconds": measured["frames"][-1]["seconds_to_frame"], "frames": measured["frames"],
+          "result": hashlib.sha256(np.asarray(frames[-1].rgb).tobytes()).hexdigest()[:16]}
+
+
 def run_child(args: argparse.Namespace) -> dict[str, Any]:
   """Runs the workload `args.child` in this process (the allocator set as the environment says)
   and returns its measurements."""
@@ -143,7 +155,8 @@ def run_child(args: argparse.Namespace) -> dict[str, Any]:
   work: Callable[[], dict[str, Any]] = {
       "nerf_train": lambda: nerf_train(args.nerf_steps),
       "nerf_budget": lambda: nerf_budget(args.budget_seconds), "nerf_render": nerf_render,
-      "unet_forward": unet_forward, "update": update}[args.child]
+      "unet_forward": unet_forward, "update": update,
+      "viewer_frames": lambda: viewer_frames(args.viewer_run)}[args.child]
   before = resource.getrusage(resource.RUSAGE_SELF)
   measured = work()
   after = resource.getrusage(resource.RUSAGE_SELF)
@@ -158,7 +171,8 @@ def measure_in_child(workload: str, mode: str, args: argparse.Namespace) -> dict
   environment = {**os.environ, allocator.ENVIRONMENT_VARIABLE: MODES[mode]}
   completed = subprocess.run(
       [sys.executable, __file__, "--child", workload, "--nerf_steps", str(args.nerf_steps),
-       "--budget_seconds", str(args.budget_seconds)],
+       "--budget_seconds", str(args.budget_seconds),
+       *(["--viewer_run", str(args.viewer_run)] if args.viewer_run else [])],
       env=environment, capture_output=True, text=True, check=False)
   if completed.returncode:
     raise RuntimeError(f"{workload} ({mode}) failed:\n{completed.stderr[-3000:]}")
@@ -204,14 +218,18 @@ def write_figure(path: Path, result: dict[str, Any]) -> None:
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--workloads", nargs="+", choices=WORKLOADS, default=list(WORKLOADS))
+  parser.add_argument("--workloads", nargs="+", choices=(*WORKLOADS, "viewer_frames"),
+                      default=list(WORKLOADS))
   parser.add_argument("--rounds", type=int, default=2, help="child runs per workload and mode")
   parser.add_argument("--nerf_steps", type=int, default=300, help="nerf_train's steps")
   parser.add_argument("--budget_seconds", type=float, default=300.0,
                       help="nerf_budget's training seconds")
+  parser.add_argument("--viewer_run", type=Path, help="viewer_frames' trained run directory")
   parser.add_argument("--name", default="bench_allocator", help="results/<name>.json")
-  parser.add_argument("--child", choices=WORKLOADS, help=argparse.SUPPRESS)
+  parser.add_argument("--child", choices=(*WORKLOADS, "viewer_frames"), help=argparse.SUPPRESS)
   args = parser.parse_args()
+  if "viewer_frames" in (*args.workloads, args.child) and args.viewer_run is None:
+    parser.error("viewer_frames needs --viewer_run RUN (a `signerf train` directory)")
   if args.child:
     print(json.dumps(run_child(args)), flush=True)
     return

@@ -14,8 +14,8 @@ heap, large blocks come from that heap instead of `mmap`, and the heap is trimme
 same bytes. The costs: the process keeps the memory it has used (its peak, plus what
 fragmentation adds) until it exits, and threads that allocate often contend for the one heap,
 which makes the diffusion sampler slower. So the commands that train or render a NeRF call it
-first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`), those that only sample do not, and
-library code never does.
+first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`; the viewer too, whose frames are
+NeRF renders), those that only sample do not, and library code never does.
 SIGNERF_KEEP_FREED_MEMORY=0 in the environment leaves the allocator as it was. Elsewhere than
 glibc (macOS, musl) it does nothing.
 """

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 
 
@@ -40,3 +42,11 @@ def test_the_figure_has_a_row_per_workload(experiment_script, tmp_path):
                           "update": {"runs": runs([0.75], [0.9])}}}
   bench.write_figure(tmp_path / "figure.png", result)
   assert (tmp_path / "figure.png").stat().st_size > 0
+
+
+def test_viewer_frames_needs_a_run_to_view(experiment_script, monkeypatch, capsys):
+  bench = experiment_script("bench_allocator")
+  monkeypatch.setattr(sys, "argv", ["bench_allocator.py", "--workloads", "viewer_frames"])
+  with pytest.raises(SystemExit):
+    bench.main()
+  assert "viewer_frames needs --viewer_run" in capsys.readouterr().err
