@@ -1,6 +1,6 @@
 """What keeping freed memory (`signerf_jax.allocator`) saves: the same work in fresh processes with
-glibc's default allocator and with the setting that `signerf train`, `finetune`, `render`, `edit`
-and `demo` apply, alternating, so a busy machine slows both alike.
+glibc's default allocator and with the setting that `signerf train`, `finetune`, `render`, `edit`,
+`demo` and `view` apply, alternating, so a busy machine slows both alike.
 
   python experiments/bench_allocator.py \
       [--workloads nerf_train nerf_budget nerf_render unet_forward update] [--rounds 2] \
@@ -65,7 +65,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" /
                           "data")) / "nerf_synthetic" / "lego"
 MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
-WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
+DEFAULT_WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
+WORKLOADS = (*DEFAULT_WORKLOADS, "viewer_frames")  # viewer_frames needs a trained run.
 VIEWER_VIEWS = 5
 
 
@@ -218,15 +219,15 @@ def write_figure(path: Path, result: dict[str, Any]) -> None:
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--workloads", nargs="+", choices=(*WORKLOADS, "viewer_frames"),
-                      default=list(WORKLOADS))
+  parser.add_argument("--workloads", nargs="+", choices=WORKLOADS,
+                      default=list(DEFAULT_WORKLOADS))
   parser.add_argument("--rounds", type=int, default=2, help="child runs per workload and mode")
   parser.add_argument("--nerf_steps", type=int, default=300, help="nerf_train's steps")
   parser.add_argument("--budget_seconds", type=float, default=300.0,
                       help="nerf_budget's training seconds")
   parser.add_argument("--viewer_run", type=Path, help="viewer_frames' trained run directory")
   parser.add_argument("--name", default="bench_allocator", help="results/<name>.json")
-  parser.add_argument("--child", choices=(*WORKLOADS, "viewer_frames"), help=argparse.SUPPRESS)
+  parser.add_argument("--child", choices=WORKLOADS, help=argparse.SUPPRESS)
   args = parser.parse_args()
   if "viewer_frames" in (*args.workloads, args.child) and args.viewer_run is None:
     parser.error("viewer_frames needs --viewer_run RUN (a `signerf train` directory)")
