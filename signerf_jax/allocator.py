@@ -12,10 +12,11 @@ time. A NeRF training step frees and re-faults hundreds of MiB every step: on th
 heap, large blocks come from that heap instead of `mmap`, and the heap is trimmed only past
 2 GiB of free space at its top. Freed pages then stay mapped and are reused; the results are the
 same bytes. The costs: the process keeps the memory it has used (its peak, plus what
-fragmentation adds) until it exits, and threads that allocate often contend for the one heap,
-which makes the diffusion sampler slower. So the commands that train or render a NeRF call it
-first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`; the viewer too, whose frames are
-NeRF renders), those that only sample do not, and library code never does.
+fragmentation adds) until it exits, and the diffusion sampler runs slower: its threads contend
+for the one heap, and its large blocks served from the heap are slower too (each half of the
+setting alone slows it; README, "Performance"). So the commands that train or render a NeRF
+call it first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`; the viewer too, whose frames
+are NeRF renders), those that only sample do not, and library code never does.
 SIGNERF_KEEP_FREED_MEMORY=0 in the environment leaves the allocator as it was. Elsewhere than
 glibc (macOS, musl) it does nothing.
 """
