@@ -1,11 +1,11 @@
 """What keeping freed memory (`signerf_jax.allocator`) saves: the same work in fresh processes with
-glibc's default allocator and with the setting that `signerf train`, `finetune`, `render`, `edit`,
-`demo` and `view` apply, alternating, so a busy machine slows both alike.
+glibc's default allocator and with the setting that `signerf train`, `finetune`, `render`, `eval`,
+`edit`, `demo` and `view` apply, alternating, so a busy machine slows both alike.
 
   python experiments/bench_allocator.py \
       [--workloads nerf_train nerf_budget nerf_render unet_forward update] [--rounds 2] \
       [--nerf_steps 300] [--budget_seconds 300] [--name bench_allocator]
-  python experiments/bench_allocator.py --workloads viewer_frames --viewer_run RUN
+  python experiments/bench_allocator.py --workloads nerf_eval viewer_frames --run RUN
 
 Workloads (each child process runs one and reports it as one JSON line):
   * nerf_train: `signerf train` on Blender lego at 100 px for `nerf_steps` steps; its training
@@ -18,9 +18,12 @@ Workloads (each child process runs one and reports it as one JSON line):
     three jitted forwards after the one that compiles, and a checksum of its output;
   * update: the image set update with the shipped model (one view per call, 2 x 3 sheet), seconds
     per view over four views after the call that compiles;
-  * viewer_frames (only when asked for, with `--viewer_run`, a trained run): `signerf view`'s
-    progressive frames of five training poses after one that compiles (`bench_viewer.bench_run`):
-    the median seconds to the finest frame, and a checksum of the last one.
+and, only when asked for, on a trained run (`--run`, a `signerf train` directory):
+  * nerf_eval: `signerf eval` on a copy of the run: the command's wall seconds (its compilation
+    included) and the held-out PSNR it reports;
+  * viewer_frames: `signerf view`'s progressive frames of five training poses after one that
+    compiles (`bench_viewer.bench_run`): the median seconds to the finest frame, and a checksum
+    of the last one.
 Per child: wall seconds of the work, the process's user and system CPU seconds and minor page
 faults over it, and its peak resident memory. Writes experiments/results/NAME.json with the
 machine and its load, and NAME.png: each workload's speed-up.
@@ -33,6 +36,7 @@ import hashlib
 import json
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -66,7 +70,8 @@ LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().paren
                           "data")) / "nerf_synthetic" / "lego"
 MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
 DEFAULT_WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
-WORKLOADS = (*DEFAULT_WORKLOADS, "viewer_frames")  # viewer_frames needs a trained run.
+RUN_WORKLOADS = ("nerf_eval", "viewer_frames")  # They need a trained run (--run).
+WORKLOADS = (*DEFAULT_WORKLOADS, *RUN_WORKLOADS)
 VIEWER_VIEWS = 5
 
 
@@ -143,6 +148,16 @@ def update() -> dict[str, Any]:
   return {"seconds": bench_update.seconds_per_view(edit_batch, views, 1), "result": None}
 
 
+def nerf_eval(run: Path) -> dict[str, Any]:
+  with tempfile.TemporaryDirectory() as directory:
+    copy = shutil.copytree(run, Path(directory) / "run")  # eval writes into the run.
+    started = time.perf_counter()
+    signerf("eval", "--run", str(copy))
+    seconds = time.perf_counter() - started
+    report = json.loads((copy / "eval.json").read_text())
+  return {"seconds": seconds, "result": round(report["held_out"]["psnr"], 6)}
+
+
 def viewer_frames(run: Path) -> dict[str, Any]:
   measured, frames = bench_viewer.bench_run(run, VIEWER_VIEWS)
   return {"seconds": measured["frames"][-1]["seconds_to_frame"], "frames": measured["frames"],
@@ -157,7 +172,8 @@ def run_child(args: argparse.Namespace) -> dict[str, Any]:
       "nerf_train": lambda: nerf_train(args.nerf_steps),
       "nerf_budget": lambda: nerf_budget(args.budget_seconds), "nerf_render": nerf_render,
       "unet_forward": unet_forward, "update": update,
-      "viewer_frames": lambda: viewer_frames(args.viewer_run)}[args.child]
+      "nerf_eval": lambda: nerf_eval(args.run),
+      "viewer_frames": lambda: viewer_frames(args.run)}[args.child]
   before = resource.getrusage(resource.RUSAGE_SELF)
   measured = work()
   after = resource.getrusage(resource.RUSAGE_SELF)
@@ -173,7 +189,7 @@ def measure_in_child(workload: str, mode: str, args: argparse.Namespace) -> dict
   completed = subprocess.run(
       [sys.executable, __file__, "--child", workload, "--nerf_steps", str(args.nerf_steps),
        "--budget_seconds", str(args.budget_seconds),
-       *(["--viewer_run", str(args.viewer_run)] if args.viewer_run else [])],
+       *(["--run", str(args.run)] if args.run else [])],
       env=environment, capture_output=True, text=True, check=False)
   if completed.returncode:
     raise RuntimeError(f"{workload} ({mode}) failed:\n{completed.stderr[-3000:]}")
@@ -225,12 +241,13 @@ def main() -> None:
   parser.add_argument("--nerf_steps", type=int, default=300, help="nerf_train's steps")
   parser.add_argument("--budget_seconds", type=float, default=300.0,
                       help="nerf_budget's training seconds")
-  parser.add_argument("--viewer_run", type=Path, help="viewer_frames' trained run directory")
+  parser.add_argument("--run", type=Path, help="the trained run of nerf_eval and viewer_frames")
   parser.add_argument("--name", default="bench_allocator", help="results/<name>.json")
   parser.add_argument("--child", choices=WORKLOADS, help=argparse.SUPPRESS)
   args = parser.parse_args()
-  if "viewer_frames" in (*args.workloads, args.child) and args.viewer_run is None:
-    parser.error("viewer_frames needs --viewer_run RUN (a `signerf train` directory)")
+  needing_run = set(RUN_WORKLOADS) & {*args.workloads, args.child}
+  if needing_run and args.run is None:
+    parser.error(f"{', '.join(sorted(needing_run))} need --run RUN (a `signerf train` directory)")
   if args.child:
     print(json.dumps(run_child(args)), flush=True)
     return

@@ -46,12 +46,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 # Commands whose process keeps the memory XLA frees (signerf_jax.allocator): a NeRF step or a
-# rendered chunk frees and re-faults its buffers on every call. `edit` and `demo` too: their
-# time-budgeted NeRF stages run ~1.3-1.45x the steps, which outweighs their sampling stages
-# running slower with glibc's one arena; and `view`, whose frames of a real capture come 1.57x
-# sooner while its occasional preview samples slower. The commands that only sample (`preview`,
-# `update`) leave the allocator as it is (README, "Performance").
-KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "edit", "demo", "view")
+# rendered chunk frees and re-faults its buffers on every call (`eval` renders the views it
+# measures: 1.49x on stitch). `edit` and `demo` too: their time-budgeted NeRF stages run
+# ~1.3-1.45x the steps, which outweighs their sampling stages running slower that way; and
+# `view`, whose frames of a real capture come 1.57x sooner while its occasional preview samples
+# slower. `preview` and `update` only sample and keep glibc's defaults (README, "Performance").
+KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "demo", "view")
 
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:

@@ -44,9 +44,10 @@ def test_the_figure_has_a_row_per_workload(experiment_script, tmp_path):
   assert (tmp_path / "figure.png").stat().st_size > 0
 
 
-def test_viewer_frames_needs_a_run_to_view(experiment_script, monkeypatch, capsys):
+@pytest.mark.parametrize("workloads", [["viewer_frames"], ["nerf_train", "nerf_eval"]])
+def test_workloads_on_a_trained_run_need_one(experiment_script, monkeypatch, capsys, workloads):
   bench = experiment_script("bench_allocator")
-  monkeypatch.setattr(sys, "argv", ["bench_allocator.py", "--workloads", "viewer_frames"])
+  monkeypatch.setattr(sys, "argv", ["bench_allocator.py", "--workloads", *workloads])
   with pytest.raises(SystemExit):
     bench.main()
-  assert "viewer_frames needs --viewer_run" in capsys.readouterr().err
+  assert "need --run RUN" in capsys.readouterr().err
