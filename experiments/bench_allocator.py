@@ -115,7 +115,6 @@ def nerf_render() -> dict[str, Any]:
 
 
 def unet_forward() -> dict[str, Any]:
-
   unet = UNet2DCondition(model_configs.UNetConfig.from_dict(SD15_UNET))
   params = weights.random_params(unet)
   rng = np.random.default_rng(0)
@@ -134,7 +133,6 @@ def unet_forward() -> dict[str, Any]:
 
 
 def update() -> dict[str, Any]:
-
   model = str(DEFAULT_MODEL_DIR)
   tile = generation.native_tile_size(model)
   rng = np.random.default_rng(0)

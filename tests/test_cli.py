@@ -54,4 +54,4 @@ def test_the_commands_that_train_a_nerf_keep_freed_memory(monkeypatch, tmp_path)
   assert calls == [True]
   assert cli.main(["preview", "--run", str(tmp_path / "missing"), "--out",
                    str(tmp_path / "edit")]) == 2
-  assert calls == [True]  # The diffusion sampler runs slower with one arena.
+  assert calls == [True]  # The diffusion sampler runs slower keeping freed memory.
