@@ -10,15 +10,14 @@ Every step is the `signerf` command a user types, each in a process of its own, 
 compilation cache that starts empty (OUT/compilation_cache; the NeRF is reused when OUT/run
 exists, and then its command only resumes and evaluates: the NeRF's own training seconds are
 recorded apart): train (time budget `--train_seconds`), info, place (a view, a pixel on the
-table in front of the toy), preview (four candidate sheets, the inpainting masks grown as the
-demo grows them; timed with the cache as training left it, then again in a copy of the edit
-with the cache warm), edit (sheet 0; every NeRF
-training under `--edit_seconds`). The same edit runs again with whole downscaled frames instead
-of selection crops (`SheetConfig.crops = False`): the crops comparison. Writes
+table in front of the toy), preview (four candidate sheets, the inpainting masks grown by the
+shipped model's own 8 px at 512 (its model_index.json), as the demo grows them; timed with the
+cache as training left it, then again in a copy of the edit with the cache warm), edit (sheet 0;
+every NeRF training under `--edit_seconds`). The same edit runs again with whole downscaled frames
+instead of selection crops (`SheetConfig.crops = False`): the crops comparison. Writes
 experiments/results/real_scene_edit.json (each command's wall seconds, the edit's stage seconds,
-the evaluation's metrics, the crops comparison, the machine and its load) and
-real_scene_edit.png (the placement, the preview, before/after held-out renders with crops and
-with whole frames).
+the evaluation's metrics, the crops comparison, the machine and its load) and real_scene_edit.png
+(the placement, the preview, before/after held-out renders with crops and with whole frames).
 """
 
 from __future__ import annotations
@@ -36,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from signerf_jax import files
-from signerf_jax.editing import figures
+from signerf_jax.editing import figures, generation
+from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.commands import sweeps
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -46,11 +46,6 @@ DOWNSCALE = 4  # 200 x 200 px views.
 VIEW = "0002.png"
 PIXEL = (155.0, 150.0)  # On the table, in front of the toy's right foot (200 px view).
 PROMPT = "a red teddy bear"
-# The proxy's silhouette grown by 8 px at 512 (3 px in these 200 px views, 3-4 px in the 64 px
-# tiles cut around it), as the demo grows it, instead of SelectionConfig's default 24 (about 11 px
-# in the tiles): in the wider ring the shipped model repaints the table blurred, a halo the NeRF
-# keeps around the bear, and the bear itself is less solid (README, "Is the edit solid in 3D?").
-MASK_DILATION = 8.0
 
 
 def signerf(cache: Path, *argv) -> tuple[float, str]:
@@ -103,8 +98,7 @@ def main() -> None:
       cache, "place", "--run", run, "--out", edit, "--view", VIEW, "--pixel", *PIXEL,
       "--proxy", SHARED_DATA / "meshes" / "teddy.obj", "--size_fraction", 0.3)
   shutil.copytree(edit, warm)
-  preview = ("--prompt", PROMPT, "--quiet",
-             "--gin_param", f"SelectionConfig.dilation_radius = {MASK_DILATION}")
+  preview = ("--prompt", PROMPT, "--quiet")
   seconds["preview"], _ = signerf(cache, "preview", "--out", edit, *preview)
   seconds["preview_warm_cache"], _ = signerf(cache, "preview", "--out", warm, *preview)
   shutil.copytree(edit, full_frames)
@@ -118,8 +112,9 @@ def main() -> None:
               "train, info, place, preview, edit (commands' wall seconds, stage seconds, "
               "the evaluation)",
       "scene": "stitch", "downscale": DOWNSCALE, "view": VIEW, "pixel": PIXEL,
-      "prompt": PROMPT, "mask_dilation": MASK_DILATION, "train_seconds_budget": args.train_seconds,
-      "edit_seconds_budget": args.edit_seconds, "command_seconds": seconds,
+      "prompt": PROMPT, "mask_dilation": generation.recommended_mask_dilation(DEFAULT_MODEL_DIR),
+      "train_seconds_budget": args.train_seconds, "edit_seconds_budget": args.edit_seconds,
+      "command_seconds": seconds,
       "nerf": {key: files.read_json(run / "eval.json")[key] for key in (
           "seconds_trained", "held_out", "generalisation_gap_db")},
       "placement": json.loads(placed), "scene_info": {

@@ -69,9 +69,9 @@ class EvaluationSettings:
     difference_threshold: a channel difference from the VAE round trip of the background above
       which a masked pixel is object (`generated_objects`).
     min_component_pixels: smaller object components are dropped, smaller holes filled.
-    proxy_mask_dilation, proxy_mask_feather: the pipeline's proxy masks, measured beside the
-      gate (`evaluation_singles`; `SelectionConfig.dilation_radius`, `feather_radius`: pixels
-      at 512 pixels).
+    proxy_mask_dilation, proxy_mask_feather: proxy masks as the pipeline grows them, measured
+      beside the gate (`evaluation_singles`; `SelectionConfig.dilation_radius`, `feather_radius`:
+      pixels at 512 pixels; the shipped model's own growth is 8, other models' 24).
     shape_transfer_sheets: the first eval sheets (any caption) of the shape-transfer measure.
     figure_singles, figure_sheets: samples shown in the figure.
   """

@@ -42,11 +42,17 @@ from signerf_jax.diffusion import schedulers
 from signerf_jax.diffusion import unet as unet_lib
 from signerf_jax.diffusion import vae as vae_lib
 from signerf_jax.diffusion import weights
+from signerf_jax.editing import generation
 
 DIFFUSERS_WEIGHTS = "diffusion_pytorch_model.safetensors"
 TRANSFORMERS_WEIGHTS = "model.safetensors"
 PIPELINE_CLASS = "StableDiffusionControlNetInpaintPipeline"
 COMPONENTS = ("vae", "unet", "text_encoder", "controlnet")  # The trained parameter sets.
+# Edits with this model grow the proxy's mask by 8 px at 512 (1 px in a 64 px tile): with
+# the default 24 it repaints the ring blurred and the edited NeRF keeps it as a halo (on stitch:
+# experiments/results/nerf_consistency_open_prompt_stitch_300s_dilation_8.json, the demo's
+# gin_configs/demo.gin).
+MASK_DILATION_RADIUS = 8.0
 
 
 def model_index(architecture: model_lib.Architecture) -> dict[str, Any]:
@@ -58,7 +64,8 @@ def model_index(architecture: model_lib.Architecture) -> dict[str, Any]:
           "controlnet": ["diffusers", "ControlNetModel"],
           "scheduler": ["diffusers", architecture.scheduler_class],
           "safety_checker": [None, None], "feature_extractor": [None, None],
-          "image_encoder": [None, None], "requires_safety_checker": False}
+          "image_encoder": [None, None], "requires_safety_checker": False,
+          generation.MASK_DILATION_KEY: MASK_DILATION_RADIUS}
 
 
 def diffusers_tensors(params, dtype=np.float16) -> dict[str, np.ndarray]:

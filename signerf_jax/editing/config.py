@@ -81,9 +81,10 @@ class EditConfig(validation.CheckedFields):
     strict_prompt: a prompt word the model's tokenizer does not know is an error (by default
       a warning naming the words it knows).
     diffusion_precision: "float32", or "bfloat16": the diffusion model's weights stored and its
-      matmuls and convolutions computed in bfloat16 (float32 accumulation). On this CPU its
-      sampling is 1.28x faster with the shipped model and 1.3-1.7x for SD 1.5-sized UNets
-      (README, "Performance"); the images differ by ~0.004 in mean absolute value.
+      matmuls and convolutions computed in bfloat16 (float32 accumulation). On CPUs with bf16
+      instructions (AVX512_BF16: Zen 4, Zen 5) its sampling is 1.28x faster with the shipped
+      model and 1.3-1.7x for SD 1.5-sized UNets; without them (Zen 3) 0.64-0.79x, slower
+      (README, "Performance"). The images differ by ~0.004 in mean absolute value.
   """
 
   data: str = ""
@@ -138,7 +139,9 @@ class SelectionConfig(validation.CheckedFields):
     up: the up direction, in `frame` (None: the dataset cameras' mean up vector).
     frame: "scene" or "source" (see above).
     dilation_radius, feather_radius: mask growth and soft edge in pixels at 512 pixels
-      (`geometry.masks`): the generated region may exceed the selection slightly.
+      (`geometry.masks`): the generated region may exceed the selection slightly. None: the
+      model's own growth (`generation.recommended_mask_dilation`: 8 for the shipped model, 24
+      for others), filled in where the settings are built (`commands.edit_settings`).
     min_accumulation: NeRF opacity below which a pixel counts as empty.
     min_mask_pixels: views with fewer mask pixels are not edited (reported).
   """
@@ -157,7 +160,7 @@ class SelectionConfig(validation.CheckedFields):
   mesh_up: Vector3 = (0.0, 1.0, 0.0)
   up: Vector3 | None = None
   frame: Literal["scene", "source"] = "source"
-  dilation_radius: NonNegativeFloat = 24.0
+  dilation_radius: NonNegativeFloat | None = None
   feather_radius: NonNegativeFloat = 8.0
   min_accumulation: UnitInterval = 0.5
   min_mask_pixels: NonNegativeInt = 1
@@ -353,6 +356,10 @@ class EditSettings:
     if set(self.training) != set(TRAINING_RUNS):
       raise InputError(f"needs a TrainConfig for each of {TRAINING_RUNS}, got "
                        f"{sorted(self.training)}", field="EditSettings.training")
+    if self.selection.dilation_radius is None:
+      raise InputError("is None: set it, or build the settings with commands.edit_settings, "
+                       "which takes the model's (generation.recommended_mask_dilation)",
+                       field="SelectionConfig.dilation_radius")
 
   def generation_options(self, iteration: int) -> GenerationOptions:
     return self.generation[0 if iteration == 1 else 1]

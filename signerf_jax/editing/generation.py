@@ -33,11 +33,17 @@ from jax.sharding import Mesh
 
 from signerf_jax import files, parallel
 from signerf_jax.diffusion import pipeline as pipeline_lib
+from signerf_jax.diffusion import pipeline_components
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
 
 MESH_AXIS = "views"
+# A model's own mask growth in its model_index.json (`recommended_mask_dilation`). A model that
+# paints 512 px tiles fills a 24 px ring with detail; the shipped 64 px model repaints the ring
+# blurred and the NeRF keeps it as a halo (README, "Editing a scene"), so it records 8.
+MASK_DILATION_KEY = "_signerf_mask_dilation_radius"
+DEFAULT_MASK_DILATION = 24.0
 _RECIPE = re.compile(r"^\d+(/\d+(,\d+)*@\d+)*$")
 
 
@@ -152,6 +158,19 @@ def native_tile_size(model: str | Path) -> int:
   if not isinstance(blocks, list) or not blocks:
     raise InputError("the VAE config has no block_out_channels", vae_path, "block_out_channels")
   return sample_size * 2**(len(blocks) - 1)
+
+
+def recommended_mask_dilation(model: str | Path) -> float:
+  """The mask growth (`SelectionConfig.dilation_radius`, pixels at 512) edits with this model
+  use unless told otherwise: the `MASK_DILATION_KEY` entry of its `model_index.json` (diffusers
+  ignores keys starting with "_"), else `DEFAULT_MASK_DILATION` (an SD-sized model)."""
+  index_path = Path(model) / pipeline_components.MODEL_INDEX
+  if not index_path.is_file():
+    return DEFAULT_MASK_DILATION
+  radius = files.read_json(index_path).get(MASK_DILATION_KEY, DEFAULT_MASK_DILATION)
+  if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not radius >= 0:
+    raise InputError(f"must be a number >= 0, got {radius!r}", index_path, MASK_DILATION_KEY)
+  return float(radius)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from signerf_jax.editing.config import EditConfig, EditSettings, SelectionConfig
 from signerf_jax.editing.stages import inputs
 from signerf_jax.errors import InputError
 
-BOX = SelectionConfig(box_min=(0.0, 0.0, 0.0), box_max=(1.0, 1.0, 1.0))
+BOX = SelectionConfig(box_min=(0.0, 0.0, 0.0), box_max=(1.0, 1.0, 1.0), dilation_radius=24.0)
 
 
 def settings(**edit) -> EditSettings:
@@ -47,7 +47,7 @@ def test_a_missing_directory_is_named_before_any_stage(field, value):
 
 def test_a_missing_proxy_mesh_is_named_before_any_stage():
   selection = SelectionConfig(kind="proxy", proxy="/nonexistent/cow.obj",
-                              ground_position=(0.0, 0.0, 0.0))
+                              ground_position=(0.0, 0.0, 0.0), dilation_radius=24.0)
   with pytest.raises(InputError, match="proxy mesh file not found") as error:
     inputs.check_inputs(dataclasses.replace(settings(), selection=selection))
   assert error.value.field == "proxy"

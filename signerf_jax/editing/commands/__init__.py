@@ -17,6 +17,7 @@ it, and every stage whose settings changed runs again).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -29,7 +30,7 @@ import gin
 from signerf_jax import configs
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
-from signerf_jax.editing import stages
+from signerf_jax.editing import generation, stages
 from signerf_jax.editing.config import (TRAINING_RUNS, EditConfig, EditSettings,
                                         EvaluationConfig, FinetuneConfig,
                                         NerfConsistencySettings, NerfUpdate, PRIMITIVE_PREFIX,
@@ -183,9 +184,14 @@ def parse_edit_config(directory: str | Path, gin_files, bindings) -> None:
 
 
 def edit_settings() -> EditSettings:
-  """The edit's settings from the current gin bindings (`configs.parse_gin` first)."""
+  """The edit's settings from the current gin bindings (`configs.parse_gin` first), with what
+  the bindings leave to the model filled in from it (the mask growth)."""
+  edit, selection = configs.build(EditConfig), configs.build(SelectionConfig)
+  if selection.dilation_radius is None:
+    selection = dataclasses.replace(
+        selection, dilation_radius=generation.recommended_mask_dilation(edit.model))
   return EditSettings(
-      edit=configs.build(EditConfig), selection=configs.build(SelectionConfig),
+      edit=edit, selection=selection,
       sheet=configs.build(SheetConfig), preview=configs.build(PreviewConfig),
       update=configs.build(UpdateConfig), finetune=configs.build(FinetuneConfig),
       evaluation=configs.build(EvaluationConfig),
