@@ -39,9 +39,9 @@ from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
 
 MESH_AXIS = "views"
-# A model's own mask growth in its model_index.json (`recommended_mask_dilation`). A model that
-# paints 512 px tiles fills a 24 px ring with detail; the shipped 64 px model repaints the ring
-# blurred and the NeRF keeps it as a halo (README, "Editing a scene"), so it records 8.
+# A model's own mask growth in its model_index.json (`recommended_mask_dilation`; the shipped
+# model's, and why, in default_model/export.py), and the growth of a model that paints 512 px
+# tiles and does not say.
 MASK_DILATION_KEY = "_signerf_mask_dilation_radius"
 DEFAULT_MASK_DILATION = 24.0
 _RECIPE = re.compile(r"^\d+(/\d+(,\d+)*@\d+)*$")
