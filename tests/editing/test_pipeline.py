@@ -71,6 +71,8 @@ def test_every_stage_runs_and_the_evaluation_is_written(finished_edit):
   for name in ("original", "select", "views", "reference", "preview", "sheet", "update",
                "dataset", "finetune", "evaluate"):
     assert stage_lines(lines, name), name
+  # The random model's model_index.json records no growth of its own: the default's is used.
+  assert "masks grown 24 px at 512" in stage_lines(lines, "reference")[-1]
   metrics = files.read_json(directory / "evaluation" / "metrics.json")
   assert np.isfinite(metrics["background"]["psnr_paper"])
   assert set(metrics["consistency"]) >= {"original", "sheet_propagated", "independent"}

@@ -98,5 +98,7 @@ def render_reference(context: EditContext, iteration: int = 1) -> str:
       f", selection fills {np.min(report.fill_ratio):.0%}-{np.max(report.fill_ratio):.0%} of "
       "the frames")
   source = "edited" if iteration > 1 else "original"
+  # The growth is the model's unless bound (`commands.edit_settings`): say which one is in use.
+  growth = context.settings.selection.dilation_radius
   return (f"{count} reference views of {context.tile_size} px rendered from the {source} "
-          f"NeRF{fill}: {tiles_png}")
+          f"NeRF{fill}, masks grown {growth:g} px at 512: {tiles_png}")
