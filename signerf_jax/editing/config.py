@@ -83,8 +83,9 @@ class EditConfig(validation.CheckedFields):
     diffusion_precision: "float32", or "bfloat16": the diffusion model's weights stored and its
       matmuls and convolutions computed in bfloat16 (float32 accumulation). On CPUs with bf16
       instructions (AVX512_BF16: Zen 4, Zen 5) its sampling is 1.28x faster with the shipped
-      model and 1.3-1.7x for SD 1.5-sized UNets; without them (Zen 3) 0.64-0.79x, slower
-      (README, "Performance"). The images differ by ~0.004 in mean absolute value.
+      model and 1.3-1.7x for SD 1.5-sized UNets; without them (Zen 3) 0.64-0.79x, slower, and
+      loading warns (README, "Performance"). The images differ by ~0.004 in mean absolute
+      value.
   """
 
   data: str = ""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -44,6 +45,11 @@ MESH_AXIS = "views"
 # tiles and does not say.
 MASK_DILATION_KEY = "_signerf_mask_dilation_radius"
 DEFAULT_MASK_DILATION = 24.0
+# Instructions that multiply bf16 natively, as /proc/cpuinfo names them (x86 AVX512_BF16 and AMX,
+# Arm BF16): without them XLA's bf16 matmuls take 1.3-1.6x the time of fp32 ones, so bf16
+# sampling is slower (experiments/results/profile_diffusion_zen3.json, README "Performance").
+BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
+CPUINFO = Path("/proc/cpuinfo")
 _RECIPE = re.compile(r"^\d+(/\d+(,\d+)*@\d+)*$")
 
 
@@ -114,6 +120,14 @@ class Generator:
     return np.asarray(jax.device_get(output))[:len(keys)]
 
 
+def cpu_lacks_bf16_instructions() -> bool:
+  """Whether JAX computes on a CPU that `CPUINFO` shows without any of `BF16_CPU_FLAGS`
+  (False on accelerators, and where there is no such file to tell)."""
+  if jax.default_backend() != "cpu" or not CPUINFO.is_file():
+    return False
+  return not BF16_CPU_FLAGS & set(CPUINFO.read_text(errors="replace").split())
+
+
 def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str,
                    negative_prompt: str, options: pipeline_lib.GenerationOptions,
                    views_per_device: int, attention: AttentionOptions = AttentionOptions(),
@@ -128,6 +142,10 @@ def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str
     raise InputError(f"must be at least 1, got {views_per_device}",
                      field="UpdateConfig.views_per_device")
   dtype = jnp.dtype(precision)
+  if dtype == jnp.bfloat16 and cpu_lacks_bf16_instructions():
+    warnings.warn("EditConfig.diffusion_precision = 'bfloat16' on a CPU without bf16 "
+                  f"instructions (none of {sorted(BF16_CPU_FLAGS)} in {CPUINFO}): sampling is "
+                  "slower than in float32 there (0.64-0.79x measured on a Zen 3)", stacklevel=2)
   pipeline = pipeline_lib.load_pipeline(model, controlnet=controlnet or None,
                                         scheduler_kind=scheduler_kind or None,
                                         dtype=dtype, compute_dtype=dtype, attention=attention)

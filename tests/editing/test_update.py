@@ -209,12 +209,16 @@ def test_the_update_sharded_over_two_four_and_eight_devices_equals_the_one_devic
                                err_msg=f"{count} devices")
 
 
-def test_a_bfloat16_generator_stores_bfloat16_weights_and_edits_views_alike(generator,
-                                                                            random_model):
+def test_a_bfloat16_generator_stores_bfloat16_weights_and_edits_views_alike(
+    generator, random_model, monkeypatch, tmp_path):
   """EditConfig.diffusion_precision = "bfloat16": the weights are stored in bfloat16 and the
-  update's images stay within bfloat16's rounding of the float32 ones."""
-  reduced = generation.load_generator(str(random_model), "", "", "a red cow", "", TINY_OPTIONS,
-                                      views_per_device=4, precision="bfloat16")
+  update's images stay within bfloat16's rounding of the float32 ones; on a CPU without bf16
+  instructions (a Zen 3's flags) loading warns that it is slower there."""
+  (tmp_path / "cpuinfo").write_text("processor : 0\nflags : fpu sse2 avx avx2 fma\n")
+  monkeypatch.setattr(generation, "CPUINFO", tmp_path / "cpuinfo")
+  with pytest.warns(UserWarning, match="without bf16 instructions"):
+    reduced = generation.load_generator(str(random_model), "", "", "a red cow", "",
+                                        TINY_OPTIONS, views_per_device=4, precision="bfloat16")
   dtypes = lambda g: {leaf.dtype for leaf in jax.tree.leaves(g.pipeline.models.unet_params)}
   assert dtypes(reduced) == {np.dtype(jnp.bfloat16)}
   assert dtypes(generator) == {np.dtype(np.float32)}
@@ -224,3 +228,14 @@ def test_a_bfloat16_generator_stores_bfloat16_weights_and_edits_views_alike(gene
   full, half = np.asarray(edit(generator)), np.asarray(edit(reduced))
   assert np.all(np.isfinite(half))
   assert 0 < np.mean(np.abs(full - half)) < 0.02
+
+
+@pytest.mark.parametrize("flags, lacks", [("fpu avx2 fma", True),
+                                          ("fpu avx512f avx512_bf16", False),
+                                          ("fp asimd bf16 i8mm", False), (None, False)])
+def test_bf16_instructions_are_read_from_the_cpu_flags(monkeypatch, tmp_path, flags, lacks):
+  cpuinfo = tmp_path / "cpuinfo"  # None: no such file, nothing to tell.
+  if flags is not None:
+    cpuinfo.write_text(f"processor : 0\nflags : {flags}\n")
+  monkeypatch.setattr(generation, "CPUINFO", cpuinfo)
+  assert generation.cpu_lacks_bf16_instructions() is lacks
