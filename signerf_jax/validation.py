@@ -118,6 +118,15 @@ def describe(hint: Any) -> str:
   raise TypeError(f"no check for the annotation {hint!r}")
 
 
+def check_value(value: Any, hint: Any, path: Any = None, field: str | None = None) -> Any:
+  """`value` (lists made tuples) when the annotation `hint` allows it, for a value read from a
+  file rather than a settings field; else InputError naming `path` and `field`."""
+  matches, normalised = _match(value, hint)
+  if not matches:
+    raise InputError(f"must be {describe(hint)}, got {value!r}", path, field)
+  return normalised
+
+
 def argument_type(hint: Any, field: str | None = None):
   """An argparse `type=` that parses a flag's text and checks it against a type annotation.
 

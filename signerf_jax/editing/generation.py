@@ -32,12 +32,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from signerf_jax import files, parallel
+from signerf_jax import files, parallel, validation
 from signerf_jax.diffusion import pipeline as pipeline_lib
 from signerf_jax.diffusion import pipeline_components
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.errors import InputError
+from signerf_jax.validation import NonNegativeFloat
 
 MESH_AXIS = "views"
 # A model's own mask growth in its model_index.json (`recommended_mask_dilation`; the shipped
@@ -186,9 +187,7 @@ def recommended_mask_dilation(model: str | Path) -> float:
   if not index_path.is_file():
     return DEFAULT_MASK_DILATION
   radius = files.read_json(index_path).get(MASK_DILATION_KEY, DEFAULT_MASK_DILATION)
-  if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not radius >= 0:
-    raise InputError(f"must be a number >= 0, got {radius!r}", index_path, MASK_DILATION_KEY)
-  return float(radius)
+  return float(validation.check_value(radius, NonNegativeFloat, index_path, MASK_DILATION_KEY))
 
 
 # ------------------------------------------------------------------------------------------------
