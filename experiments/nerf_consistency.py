@@ -24,10 +24,12 @@ Scenes:
           `signerf place`), every NeRF training of the edit under 120 s, no orbit video.
 
 Writes RESULTS/nerf_consistency.json (per scene and arm: the measurements, the edit's headline
-quality and seconds; and, per other arm and measurement, whether the sheet's interval lies
-wholly above the arm's, "higher", wholly below, "lower", or neither, "overlapping") and
-nerf_consistency.png (the intervals, and each arm's before/after held-out renders). --smoke
-adds gin_configs/nerf_consistency_smoke.gin (tiny budgets, numbers meaningless).
+quality and seconds; per other arm and measurement, whether the sheet's interval lies wholly
+above the arm's, "higher", wholly below, "lower", or neither, "overlapping"; and per other arm
+and per-view measurement, the interval of the view-by-view difference, "significant" when it
+leaves out zero) and nerf_consistency.png (the intervals, and each arm's before/after held-out
+renders). --smoke adds gin_configs/nerf_consistency_smoke.gin (tiny budgets, numbers
+meaningless).
 """
 
 from __future__ import annotations
@@ -62,6 +64,9 @@ MEASURES = (("fit_psnr", "fit PSNR inside the selection", "dB"),
             ("solidity/iou", "solidity: IoU of opacity > 0.5", "IoU"),
             ("solidity/mean_opacity", "solidity: opacity in the silhouette", "opacity"),
             ("correspondences", "correspondences vs original", "relative change"))
+# The measures taken view by view at the same views for every arm (correspondences are counted
+# per pair of views and compared through their relative change).
+PER_VIEW_MEASURES = ("fit_psnr", "solidity/iou", "solidity/mean_opacity")
 
 
 def _measure(measured: dict[str, Any], key: str) -> dict[str, Any]:
@@ -108,14 +113,31 @@ def run_scene(sweep: sweeps.Sweep, arms: tuple[Variant, ...]) -> dict[str, Any]:
                                 "nerf_consistency": metrics["nerf_consistency"],
                                 "quality": summary["quality"],
                                 "edit_seconds": summary["edit_seconds"]}
-  sheet = result["arms"]["sheet"]["nerf_consistency"]
-  # Per baseline and measure: the sheet's interval "higher" than the baseline's, "lower", or
-  # "overlapping" (every measure is better higher; the paper expects "higher").
-  result["sheet_against"] = {arm.name: {
-      key: solidity.compare(_measure(sheet, key),
-                            _measure(result["arms"][arm.name]["nerf_consistency"], key))
-      for key, _, _ in MEASURES} for arm in arms[1:]}
+  result.update(compare_arms(result["arms"]))
   return result
+
+
+def compare_arms(arms: dict[str, Any]) -> dict[str, Any]:
+  """How the sheet's measurements lie against each other arm's (every measure is better
+  higher; the paper expects the sheet higher).
+
+  Args:
+    arms: per arm name (the sheet's "sheet"), {"nerf_consistency": the edit's measurements}.
+  Returns:
+    sheet_against: per baseline and measure, the sheet's interval "higher" than the
+      baseline's, "lower", or "overlapping";
+    sheet_minus: per baseline and per-view measure (`PER_VIEW_MEASURES`), the view-by-view
+      difference sheet - baseline (`solidity.paired_difference`: both measured at the same
+      views, so the spread from view to view cancels).
+  """
+  sheet = arms["sheet"]["nerf_consistency"]
+  baselines = {name: arm["nerf_consistency"] for name, arm in arms.items() if name != "sheet"}
+  return {
+      "sheet_against": {name: {key: solidity.compare(_measure(sheet, key), _measure(other, key))
+                               for key, _, _ in MEASURES} for name, other in baselines.items()},
+      "sheet_minus": {name: {key: solidity.paired_difference(_measure(sheet, key)["per_view"],
+                                                             _measure(other, key)["per_view"])
+                             for key in PER_VIEW_MEASURES} for name, other in baselines.items()}}
 
 
 def figure(results: dict[str, Any]) -> np.ndarray:

@@ -45,7 +45,8 @@ def _ticks(low: float, high: float, count: int = 5) -> np.ndarray:
   step = (high - low) / count
   magnitude = 10.0**np.floor(np.log10(step))
   step = min((factor * magnitude for factor in (1, 2, 5, 10) if factor * magnitude >= step))
-  return np.arange(np.floor(low / step) * step, high + 0.5 * step, step)
+  # Whole multiples of the step: adding the step up from `low` makes 0 into 1.4e-17.
+  return np.arange(np.floor(low / step), high / step + 0.5) * step
 
 
 def line_chart(title: str, series: Sequence[Series], x_label: str, y_label: str,

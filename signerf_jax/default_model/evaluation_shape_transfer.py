@@ -68,21 +68,13 @@ def slot_in_true_view_sheets(sheets: ViewInputs, layout: sheet_lib.SheetLayout,
                for position in range(3))
 
 
-def paired_difference(minuend: np.ndarray, subtrahend: np.ndarray) -> dict:
-  """Mean and bootstrap interval (95%, over samples) of minuend - subtrahend ([S] each), and
-  whether the interval leaves out zero."""
-  summary = solidity.summarize(np.asarray(minuend, np.float64)
-                               - np.asarray(subtrahend, np.float64))
-  return {"mean": summary["mean"], "interval": summary["interval"],
-          "significant": solidity.compare(summary, {"interval": [0.0, 0.0]}) != "overlapping"}
-
-
 def shape_transfer_measures(ious: dict[str, np.ndarray]) -> dict:
   """The mean IoU of each source ("alone", "true_views", "other_object": [S] IoUs each), what the
   true views add over "alone" and what another object's views take from them."""
+  true_views = ious["true_views"]
   return {"mean_iou": {source: float(np.mean(values)) for source, values in ious.items()},
-          "added_by_true_views": paired_difference(ious["true_views"], ious["alone"]),
-          "lost_to_other_object": paired_difference(ious["true_views"], ious["other_object"])}
+          "added_by_true_views": solidity.paired_difference(true_views, ious["alone"]),
+          "lost_to_other_object": solidity.paired_difference(true_views, ious["other_object"])}
 
 
 def evaluate_shape_transfer(single_generator: Generator, sheet_generator: Generator,

@@ -14,11 +14,15 @@ whether two edits differ:
              opacity inside the silhouette (1: solid; a haze stays well below).
   bootstrap  a percentile interval of the mean of per-view values (or of the relative change of
              per-pair correspondence counts), resampling views (pairs) with replacement: two
-             edits separate when their intervals do not overlap.
+             edits separate when their intervals do not overlap. Two edits measured at the same
+             views are also compared view by view (`paired_difference`): the interval of the
+             mean difference leaves out zero when one is consistently above the other, even
+             where the spread from view to view makes their own intervals overlap.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -119,6 +123,30 @@ def summarize(values: np.ndarray, **bootstrap_options) -> dict[str, Any]:
   return {"mean": float(np.mean(known)) if known.size else None,
           "interval": list(bootstrap_interval(known, **bootstrap_options)) if known.size else None,
           "count": int(known.size)}
+
+
+def paired_difference(minuend: Sequence[float | None], subtrahend: Sequence[float | None],
+                      **bootstrap_options) -> dict[str, Any]:
+  """The view-by-view difference of two measurements at the same views.
+
+  Args:
+    minuend, subtrahend: [N] per-view values, NaN or None where a view was not measured; views
+      missing from either are left out.
+  Returns:
+    `summarize` of minuend - subtrahend (mean, interval, count) and "significant": whether the
+    interval leaves out zero.
+  Raises:
+    InputError when the two do not hold the same number of views.
+  """
+  as_array = lambda values: np.array([np.nan if value is None else value for value in values],
+                                     np.float64)
+  minuend, subtrahend = as_array(minuend), as_array(subtrahend)
+  if minuend.shape != subtrahend.shape or minuend.ndim != 1:
+    raise InputError(f"{minuend.shape} and {subtrahend.shape} views: a paired difference needs "
+                     "the same views measured twice", field="per_view")
+  summary = summarize(minuend - subtrahend, **bootstrap_options)
+  interval = summary["interval"]
+  return {**summary, "significant": interval is not None and (interval[0] > 0 or interval[1] < 0)}
 
 
 def compare(first: dict[str, Any], second: dict[str, Any]) -> str:

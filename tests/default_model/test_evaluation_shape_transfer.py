@@ -91,20 +91,6 @@ def test_a_sheet_that_carries_shape_is_told_apart(monkeypatch):
   assert slot_true_views.shape == (len(SQUARES), SIZE, SIZE, 3)
 
 
-@pytest.mark.parametrize("difference, significant", [
-    ([0.1, 0.1, 0.1, 0.1], True),
-    ([-0.2, -0.1, -0.15, -0.12], True),
-    ([0.1, -0.1, 0.05, -0.05], False),
-])
-def test_paired_difference_is_significant_only_when_its_interval_leaves_out_zero(difference,
-                                                                                 significant):
-  subtrahend = np.full(len(difference), 0.5)
-  result = shape_transfer.paired_difference(subtrahend + np.asarray(difference), subtrahend)
-  assert result["mean"] == pytest.approx(np.mean(difference))
-  assert result["interval"][0] <= result["mean"] <= result["interval"][1]
-  assert result["significant"] == significant
-
-
 def test_settings_need_two_shape_transfer_sheets():
   with pytest.raises(InputError) as error:
     evaluation.EvaluationSettings(shape_transfer_sheets=1)

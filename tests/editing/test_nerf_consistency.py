@@ -10,6 +10,7 @@ from signerf_jax import camera, configs, files
 from signerf_jax.editing import commands, demo, stages
 from signerf_jax.editing.project import canonical_json
 from signerf_jax.editing.stages import nerf_consistency
+from signerf_jax.metrics import solidity
 
 selection_rectangles = nerf_consistency._selection_rectangles  # pylint: disable=protected-access
 
@@ -23,6 +24,16 @@ def clear_gin():
 @pytest.fixture(scope="module")
 def experiment(experiment_script):
   return experiment_script("nerf_consistency")
+
+
+# Per-view deviations spanning 0.1 with a mean of zero, the same in every arm: an IoU's spread
+# from view to view (a fit PSNR's is 10 times it, in dB).
+VIEW_SPREAD = np.linspace(-0.05, 0.05, 12)
+
+
+def measurement(per_view: np.ndarray) -> dict:
+  """A stored measurement as an edit's evaluation writes it: summary and per-view values."""
+  return {**solidity.summarize(per_view), "per_view": [float(value) for value in per_view]}
 
 
 @pytest.mark.parametrize("up, low, high", [((0, 0, 1), [0, 0, 0.1], [1, 1, 2]),
@@ -87,11 +98,10 @@ def test_a_scene_runs_the_sheet_and_the_chosen_baselines_only(experiment, tmp_pa
     def run(self, group, arm):
       ran.append(arm.name)
       fit = {"sheet": 20.0, "independent": 18.0}[arm.name]
-      summary = {"mean": fit, "interval": [fit - 0.5, fit + 0.5]}
       iou = {"sheet": 0.7, "independent": 0.8}[arm.name]  # The independent edit's is higher.
-      measured = {"fit_psnr": summary,
-                  "solidity": {"iou": {"mean": iou, "interval": [iou - 0.02, iou + 0.02]},
-                               "mean_opacity": summary},
+      measured = {"fit_psnr": measurement(fit + 10 * VIEW_SPREAD),
+                  "solidity": {"iou": measurement(iou + VIEW_SPREAD),
+                               "mean_opacity": measurement(fit + 10 * VIEW_SPREAD)},
                   "correspondences": {"relative_change": -0.2, "interval": [-0.3, -0.1]}}
       directory = tmp_path / group / arm.name
       files.write_json(directory / "evaluation" / "metrics.json",
@@ -103,3 +113,56 @@ def test_a_scene_runs_the_sheet_and_the_chosen_baselines_only(experiment, tmp_pa
   assert result["sheet_against"] == {"independent": {
       "fit_psnr": "higher", "solidity/iou": "lower", "solidity/mean_opacity": "higher",
       "correspondences": "overlapping"}}
+  differences = result["sheet_minus"]["independent"]
+  assert list(differences) == list(experiment.PER_VIEW_MEASURES)
+  assert differences["fit_psnr"]["mean"] == pytest.approx(2.0)
+  assert differences["solidity/iou"]["mean"] == pytest.approx(-0.1)
+  assert all(difference["significant"] for difference in differences.values())
+
+
+def test_pairing_finds_a_small_lead_at_every_view_that_the_intervals_do_not(experiment):
+  """The sheet 0.01 above at every view, views spread by 0.1: the arms' intervals overlap, the
+  view-by-view difference lies above zero."""
+  iou = lambda offset: {"fit_psnr": measurement(20.0 + 10 * VIEW_SPREAD),
+                        "solidity": {"iou": measurement(0.7 + offset + VIEW_SPREAD),
+                                     "mean_opacity": measurement(0.9 + VIEW_SPREAD)},
+                        "correspondences": {"relative_change": 0.0, "interval": [0.0, 0.0]}}
+  compared = experiment.compare_arms({"sheet": {"nerf_consistency": iou(0.01)},
+                                      "independent": {"nerf_consistency": iou(0.0)}})
+  assert compared["sheet_against"]["independent"]["solidity/iou"] == "overlapping"
+  difference = compared["sheet_minus"]["independent"]["solidity/iou"]
+  assert difference["significant"] and difference["mean"] == pytest.approx(0.01)
+  assert not compared["sheet_minus"]["independent"]["fit_psnr"]["significant"]
+
+
+def test_runs_are_tallied_per_setting_and_a_run_without_per_view_values_is_refused(
+    experiment_script, tmp_path, capsys):
+  runs_script = experiment_script("nerf_consistency_runs")
+  arms = lambda lead: {"sheet": {"nerf_consistency": {
+      "fit_psnr": measurement(20.0 + lead + 10 * VIEW_SPREAD),
+      "solidity": {"iou": measurement(0.8 + lead / 10 + VIEW_SPREAD),
+                   "mean_opacity": measurement(0.9 + VIEW_SPREAD)},
+      "correspondences": {"relative_change": 0.0, "interval": [0.0, 0.0]}}},
+      "independent": {"nerf_consistency": {
+          "fit_psnr": measurement(20.0 + 10 * VIEW_SPREAD),
+          "solidity": {"iou": measurement(0.8 + VIEW_SPREAD),
+                       "mean_opacity": measurement(0.9 + VIEW_SPREAD)},
+          "correspondences": {"relative_change": 0.0, "interval": [0.0, 0.0]}}}}
+  paths = []
+  for number, lead in enumerate([1.0, 1.0, -1.0]):
+    paths.append(str(tmp_path / f"run{number}.json"))
+    files.write_json(paths[-1], {"scenes": {"demo": {"arms": arms(lead)}}})
+  output = tmp_path / "runs.json"
+  assert runs_script.main(["--setting", "demo", *paths, "--output", str(output)]) == 0
+  tally = files.read_json(output)["settings"]["demo"]["tally"]["demo"]["independent"]
+  assert tally["fit_psnr"] == {"runs": 3, "unpaired": {"higher": 2, "lower": 1},
+                               "paired": {"higher": 2, "lower": 1}}
+  # The same opacity in both arms: never significant either way.
+  assert tally["solidity/mean_opacity"]["paired"] == {"higher": 0, "lower": 0}
+  assert files.read_image(output.with_suffix(".png")).ndim == 3
+  files.write_json(tmp_path / "old.json", {"scenes": {"demo": {"arms": {
+      name: {"nerf_consistency": {"fit_psnr": {"mean": 1.0, "interval": [0.9, 1.1]}}}
+      for name in ("sheet", "independent")}}}})
+  assert runs_script.main(["--setting", "old", str(tmp_path / "old.json"),
+                           "--output", str(output)]) == 2
+  assert "old.json" in capsys.readouterr().err

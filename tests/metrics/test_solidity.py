@@ -88,3 +88,36 @@ def test_the_relative_change_interval_covers_the_pooled_change():
   assert low <= pooled <= high and high - low < 0.05
   unchanged_low, unchanged_high = solidity.relative_change_interval(original, original)
   assert unchanged_low == unchanged_high == 0.0
+
+
+@pytest.mark.parametrize("difference, significant", [
+    ([0.1, 0.1, 0.1, 0.1], True),
+    ([-0.2, -0.1, -0.15, -0.12], True),
+    ([0.1, -0.1, 0.05, -0.05], False),
+])
+def test_paired_difference_is_significant_only_when_its_interval_leaves_out_zero(difference,
+                                                                                 significant):
+  subtrahend = np.full(len(difference), 0.5)
+  result = solidity.paired_difference(subtrahend + np.asarray(difference), subtrahend)
+  assert result["mean"] == pytest.approx(np.mean(difference))
+  assert result["interval"][0] <= result["mean"] <= result["interval"][1]
+  assert result["significant"] == significant and result["count"] == len(difference)
+
+
+def test_pairing_separates_a_consistent_difference_that_view_spread_hides():
+  """Two edits, the first better by 0.02 at every view, views spread by 0.1: their own
+  intervals overlap, the view-by-view difference's leaves out zero."""
+  second = np.random.default_rng(1).uniform(0.6, 0.9, 12)
+  first = second + 0.02
+  assert solidity.compare(solidity.summarize(first), solidity.summarize(second)) == "overlapping"
+  paired = solidity.paired_difference(first, second)
+  assert paired["significant"] and paired["interval"][0] > 0
+
+
+def test_paired_difference_leaves_out_views_either_did_not_measure():
+  result = solidity.paired_difference([0.9, None, 0.8, np.nan], [0.7, 0.5, None, 0.6])
+  assert result["count"] == 1 and result["mean"] == pytest.approx(0.2)
+  with pytest.raises(InputError, match="same views"):
+    solidity.paired_difference([0.9, 0.8], [0.7])
+  unmeasured = solidity.paired_difference([None, 0.8], [0.5, None])
+  assert unmeasured["count"] == 0 and not unmeasured["significant"]
