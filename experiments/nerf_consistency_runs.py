@@ -77,7 +77,7 @@ def figure(settings: dict[str, dict[str, Any]]) -> np.ndarray:
       for baseline in compared["sheet_minus"]:
         panels = []
         for key, title, unit in nerf_consistency.MEASURES:
-          if key not in nerf_consistency.PER_VIEW_MEASURES:
+          if key not in compared["sheet_minus"][baseline]:
             continue
           chart_rows = [("zero", 0.0, 0.0, 0.0)] + [
               (f"run {number}", difference["mean"], *(difference["interval"] or (None,) * 2))

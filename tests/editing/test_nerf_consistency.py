@@ -127,12 +127,17 @@ def test_pairing_finds_a_small_lead_at_every_view_that_the_intervals_do_not(expe
                         "solidity": {"iou": measurement(0.7 + offset + VIEW_SPREAD),
                                      "mean_opacity": measurement(0.9 + VIEW_SPREAD)},
                         "correspondences": {"relative_change": 0.0, "interval": [0.0, 0.0]}}
+  # The reference views' NeRF learned 3 views (the reference cameras): its fit is not paired.
+  reference_views = dict(iou(0.0), fit_psnr=measurement(np.array([20.0, 21.0, 22.0])))
   compared = experiment.compare_arms({"sheet": {"nerf_consistency": iou(0.01)},
-                                      "independent": {"nerf_consistency": iou(0.0)}})
+                                      "independent": {"nerf_consistency": iou(0.0)},
+                                      "reference_views": {"nerf_consistency": reference_views}})
   assert compared["sheet_against"]["independent"]["solidity/iou"] == "overlapping"
   difference = compared["sheet_minus"]["independent"]["solidity/iou"]
   assert difference["significant"] and difference["mean"] == pytest.approx(0.01)
   assert not compared["sheet_minus"]["independent"]["fit_psnr"]["significant"]
+  assert list(compared["sheet_minus"]["reference_views"]) == ["solidity/iou",
+                                                              "solidity/mean_opacity"]
 
 
 def test_runs_are_tallied_per_setting_and_a_run_without_per_view_values_is_refused(
