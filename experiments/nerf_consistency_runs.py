@@ -45,6 +45,8 @@ def run_comparisons(result: dict[str, Any], source: Path) -> dict[str, Any]:
   except KeyError as error:
     raise InputError(f"not a nerf_consistency.py result with per-view values (no {error})",
                      source) from error
+  except InputError as error:  # Per-view values of two arms that cannot be paired.
+    raise InputError(error.problem, source, error.field) from error
 
 
 def tally(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:

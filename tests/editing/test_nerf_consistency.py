@@ -171,3 +171,9 @@ def test_runs_are_tallied_per_setting_and_a_run_without_per_view_values_is_refus
   assert runs_script.main(["--setting", "old", str(tmp_path / "old.json"),
                            "--output", str(output)]) == 2
   assert "old.json" in capsys.readouterr().err
+  unpaired = arms(1.0)
+  unpaired["independent"]["nerf_consistency"]["fit_psnr"] = measurement(np.array([20.0, 21.0]))
+  files.write_json(tmp_path / "unpaired.json", {"scenes": {"demo": {"arms": unpaired}}})
+  assert runs_script.main(["--setting", "unpaired", str(tmp_path / "unpaired.json"),
+                           "--output", str(output)]) == 2
+  assert "unpaired.json: per_view: (12,) and (2,) views" in capsys.readouterr().err
