@@ -105,7 +105,7 @@ def test_paired_difference_is_significant_only_when_its_interval_leaves_out_zero
 
 
 def test_pairing_separates_a_consistent_difference_that_view_spread_hides():
-  """Two edits, the first better by 0.02 at every view, views spread by 0.1: their own
+  """Two edits, the first better by 0.02 at every view, views spread over 0.3: their own
   intervals overlap, the view-by-view difference's leaves out zero."""
   second = np.random.default_rng(1).uniform(0.6, 0.9, 12)
   first = second + 0.02
