@@ -155,13 +155,11 @@ def figure(results: dict[str, Any]) -> np.ndarray:
         (name, _measure(arm["nerf_consistency"], key)["mean"],
          *(_measure(arm["nerf_consistency"], key)["interval"] or (None, None)))
         for name, arm in arms.items()], unit) for key, title, unit in MEASURES]
-    rows.append(np.concatenate(panels, axis=1)[..., ::-1].astype(np.float32) / 255)
+    rows.append(plotting.side_by_side(panels))
     for name, arm in arms.items():
       image = files.read_image(Path(arm["directory"]) / "evaluation" / "before_after.png")
       rows.append(figures.image_grid([[image[..., :3]]], [[f"{scene}, {name}: before / after"]]))
-  width = max(row.shape[1] for row in rows)
-  return np.concatenate([np.pad(row, ((0, 8), (0, width - row.shape[1]), (0, 0)),
-                                constant_values=1.0) for row in rows])
+  return plotting.stacked(rows)
 
 
 def main(argv=None) -> int:

@@ -88,10 +88,8 @@ def figure(settings: dict[str, dict[str, Any]]) -> np.ndarray:
           panels.append(plotting.interval_chart(
               f"{name}: sheet - {baseline}, {unit}", chart_rows, title, width=560,
               height=60 + 24 * len(chart_rows)))
-        rows.append(np.concatenate(panels, axis=1)[..., ::-1].astype(np.float32) / 255)
-  width = max(row.shape[1] for row in rows)
-  return np.concatenate([np.pad(row, ((0, 8), (0, width - row.shape[1]), (0, 0)),
-                                constant_values=1.0) for row in rows])
+        rows.append(plotting.side_by_side(panels))
+  return plotting.stacked(rows)
 
 
 def main(argv=None) -> int:

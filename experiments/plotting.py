@@ -129,6 +129,18 @@ def interval_chart(title: str, rows: Sequence[tuple[str, float, float, float]], 
   return canvas
 
 
+def side_by_side(panels: Sequence[np.ndarray]) -> np.ndarray:
+  """Charts (same height, uint8 BGR) side by side: [H, W, 3] float32 RGB in [0, 1]."""
+  return np.concatenate(panels, axis=1)[..., ::-1].astype(np.float32) / 255
+
+
+def stacked(rows: Sequence[np.ndarray], gap: int = 8) -> np.ndarray:
+  """[H, W, 3] float32 RGB images one below the other, left-aligned on white, `gap` px apart."""
+  width = max(row.shape[1] for row in rows)
+  return np.concatenate([np.pad(row, ((0, gap), (0, width - row.shape[1]), (0, 0)),
+                                constant_values=1.0) for row in rows])
+
+
 def write_panels(path: str | Path, panels: Sequence[np.ndarray]) -> None:
   """Writes charts side by side (same height) as one PNG, atomically."""
-  files.write_image(path, np.concatenate(panels, axis=1)[..., ::-1].astype(np.float32) / 255)
+  files.write_image(path, side_by_side(panels))
