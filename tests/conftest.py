@@ -18,9 +18,13 @@ import pytest
 # commands they start) must neither read a machine's cache nor write to it. Many tests compile
 # the same programs again (a NeRF step, a tiny pipeline, in-process and in the commands they
 # start), so they share a cache that lives as long as the session (a tenth of the suite's
-# time; under pytest-xdist each worker has its own); JAX_ENABLE_COMPILATION_CACHE=false turns
-# it off.
-SESSION_COMPILATION_CACHE = tempfile.mkdtemp(prefix="signerf_jax_tests_xla_")
+# time); JAX_ENABLE_COMPILATION_CACHE=false turns it off. Under pytest-xdist the controller
+# makes it and its workers, which inherit the controller's environment, share it.
+SESSION_CACHE_VARIABLE = "SIGNERF_TESTS_COMPILATION_CACHE"
+OWNS_SESSION_CACHE = SESSION_CACHE_VARIABLE not in os.environ
+if OWNS_SESSION_CACHE:
+  os.environ[SESSION_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="signerf_jax_tests_xla_")
+SESSION_COMPILATION_CACHE = os.environ[SESSION_CACHE_VARIABLE]
 os.environ["JAX_COMPILATION_CACHE_DIR"] = SESSION_COMPILATION_CACHE
 os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "true")
 # `signerf_jax.cli.main` makes its process keep freed memory (signerf_jax.allocator); many tests
@@ -75,7 +79,8 @@ def pytest_xdist_make_scheduler(config, log):
 
 
 def pytest_sessionfinish(session, exitstatus):
-  shutil.rmtree(SESSION_COMPILATION_CACHE, ignore_errors=True)
+  if OWNS_SESSION_CACHE:
+    shutil.rmtree(SESSION_COMPILATION_CACHE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):
