@@ -19,7 +19,9 @@ def cache_settings():
 
 
 def test_compiled_programs_are_kept_in_the_user_cache(cache_settings, monkeypatch, tmp_path):
+  monkeypatch.delenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", raising=False)
   jax.config.update("jax_compilation_cache_dir", None)
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
   monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
   cli.use_compilation_cache()
   assert jax.config.jax_compilation_cache_dir == str(tmp_path / "signerf_jax" / "xla")
