@@ -19,7 +19,8 @@ import pytest
 # the same programs again (a NeRF step, a tiny pipeline, in-process and in the commands they
 # start), so they share a cache that lives as long as the session (a tenth of the suite's
 # time); JAX_ENABLE_COMPILATION_CACHE=false turns it off. Under pytest-xdist the controller
-# makes it and its workers, which inherit the controller's environment, share it.
+# makes it and its workers, which inherit the controller's environment, share it (an entry one
+# worker reads while the other is still writing it fails to decompress: JAX warns and compiles).
 SESSION_CACHE_VARIABLE = "SIGNERF_TESTS_COMPILATION_CACHE"
 OWNS_SESSION_CACHE = SESSION_CACHE_VARIABLE not in os.environ
 if OWNS_SESSION_CACHE:
