@@ -42,6 +42,9 @@ from signerf_jax.editing import figures, generation
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import plotting  # pylint: disable=wrong-import-position
+
 REPOSITORY = Path(__file__).resolve().parent.parent
 RESULTS = REPOSITORY / "experiments" / "results"
 DEFAULT_DATA = REPOSITORY / "outputs" / "default_model_data"
@@ -53,13 +56,6 @@ def machine(load_at_start) -> dict:
           "load_average_at_start": list(load_at_start), "load_average_at_end": list(
               os.getloadavg()), "devices": [str(device) for device in jax.devices()],
           "jax": jax.__version__}
-
-
-def stack_vertically(images) -> np.ndarray:
-  """[H_i, W_i, 3] images one below the other, padded on the right with white."""
-  width = max(image.shape[1] for image in images)
-  return np.concatenate([np.pad(image, ((0, 0), (0, width - image.shape[1]), (0, 0)),
-                                constant_values=1.0) for image in images])
 
 
 def samples_figure(singles: evaluation_generation.ViewInputs, single_images: dict,
@@ -94,7 +90,7 @@ def samples_figure(singles: evaluation_generation.ViewInputs, single_images: dic
                    "independent views"])
   if rows:
     grids.append(figures.image_grid(rows, labels))
-  return stack_vertically(grids)
+  return plotting.stacked(grids, gap=0)
 
 
 def shape_transfer_figure(sheets: evaluation_generation.ViewInputs, transfer_images: dict,
@@ -228,9 +224,10 @@ def main(argv=None) -> int:
   files.write_json(output, result)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   figure_path = output.with_name(f"{output.stem}_samples.png")
-  files.write_image(figure_path, stack_vertically([
+  files.write_image(figure_path, plotting.stacked([
       samples_figure(singles, single_images, sheets, sheet_images, data.layout, settings),
-      shape_transfer_figure(transfer_sheets, transfer_images, data.layout, settings)]))
+      shape_transfer_figure(transfer_sheets, transfer_images, data.layout, settings)],
+      gap=0))
   print_summary(result)
   print(f"results in {output}, samples in {figure_path}")
   return 0

@@ -23,13 +23,15 @@ import sys
 from pathlib import Path
 
 import gin
-import numpy as np
 
 from signerf_jax import configs, files
 from signerf_jax.editing import commands, figures
 from signerf_jax.editing.commands import sweeps
 from signerf_jax.editing.config import as_json
 from signerf_jax.errors import InputError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import plotting  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENE_DIR = configs.GIN_CONFIG_DIR / "paper_scenes"
@@ -43,13 +45,6 @@ def scene_names() -> list[str]:
 def scene_gin_files(scene: str) -> list[str]:
   """The gin files of a scene, in parsing order."""
   return ["paper_scenes", f"paper_scenes/{scene}"]
-
-
-def stacked(images: list[np.ndarray]) -> np.ndarray:
-  """Images [H_i, W_i, 3] one above the other, left-aligned on white."""
-  width = max(image.shape[1] for image in images)
-  return np.concatenate([np.pad(image, ((0, 0), (0, width - image.shape[1]), (0, 0)),
-                                constant_values=1.0) for image in images])
 
 
 def main(argv=None) -> int:
@@ -77,9 +72,9 @@ def main(argv=None) -> int:
       "metrics": files.read_json(evaluation / "metrics.json")})
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   sheet = files.read_image(evaluation / "sheet.png")[..., :3]
-  files.write_image(output.with_suffix(".png"), stacked([
+  files.write_image(output.with_suffix(".png"), plotting.stacked([
       files.read_image(evaluation / "before_after.png")[..., :3],
-      figures.image_grid([[sheet]], [[f"reference sheet (iteration {final})"]])]))
+      figures.image_grid([[sheet]], [[f"reference sheet (iteration {final})"]])], gap=0))
   print(f"paper_scenes {args.scene}: done in {seconds:.0f} s, background PSNR "
         f"{summary['quality']['background_psnr']:.2f} dB -> {output}, "
         f"{output.with_suffix('.png')}")

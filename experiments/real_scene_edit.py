@@ -32,12 +32,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from signerf_jax import files
 from signerf_jax.editing import figures, generation
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.commands import sweeps
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import plotting  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
@@ -68,13 +70,6 @@ def edit_quality(edit: Path) -> dict:
           "prompt_color_share_images": metrics["prompt_color_adherence"]["image_set"]["share"],
           "shape_iou_images": metrics["shape_iou"]["image_set"],
           "stage_seconds": metrics["stage_seconds"]}
-
-
-def stacked(images: list[np.ndarray]) -> np.ndarray:
-  """Images [H_i, W_i, 3] one above the other, left-aligned on white."""
-  width = max(image.shape[1] for image in images)
-  return np.concatenate([np.pad(image, ((0, 8), (0, width - image.shape[1]), (0, 0)),
-                                constant_values=1.0) for image in images])
 
 
 def main() -> None:
@@ -135,7 +130,7 @@ def main() -> None:
             ("held-out views before / after (whole downscaled frames)",
              full_frames / "evaluation" / "before_after.png")]
   images = [figures.image_grid([[files.read_image(path)]], [[label]]) for label, path in panels]
-  files.write_image(RESULTS / "real_scene_edit.png", stacked(images))
+  files.write_image(RESULTS / "real_scene_edit.png", plotting.stacked(images))
   print(json.dumps({"command_seconds": seconds, "background_psnr":
                     metrics["background"]["psnr_paper"]}))
 
