@@ -19,14 +19,16 @@ from random_pipeline import write_random_pipeline  # pylint: disable=wrong-impor
 @pytest.fixture(scope="session")
 def viewed_run(tmp_path_factory):
   """(run directory, scene description): a NeRF trained briefly on a 40 px, 12-view scene (200
-  steps: enough for a ground solid enough to stand a proxy on)."""
+  steps: enough for a ground solid enough to stand a proxy on; a quarter of the default sample
+  budget, 2,048 rays a step, trains in a third of the time to within 0.5 dB)."""
   directory = tmp_path_factory.mktemp("viewed")
   _, scene = synthetic_render.generate(
       directory / "scene", seed=2,
       settings=synthetic.SceneSettings(num_primitives=2, num_meshes=0),
       rig=synthetic_render.CameraRig(num_views=12, image_size=40, field_of_view_degrees=40.0))
   assert cli.main(["train", "--data", str(directory / "scene"), "--out", str(directory / "run"),
-                   "--steps", "200"]) == 0
+                   "--steps", "200", "--gin_param",
+                   "CapacityRules.samples_per_batch = 16384"]) == 0
   return directory / "run", files.read_json(directory / "scene" / "scene.json")
 
 
