@@ -32,7 +32,6 @@ import sys
 import time
 from pathlib import Path
 
-
 from signerf_jax import files
 from signerf_jax.editing import figures, generation
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR

@@ -142,6 +142,15 @@ def _diffusion_setup(stage, components, tiny_architecture, tiny_training_data, *
           settings)
 
 
+def _joint_stage_loss_fns(setting, values, components, tiny_architecture, tiny_training_data):
+  """(the joint stage's loss function for each value of one setting, then the params, frozen
+  weights and batch they share: the setting changes neither)."""
+  setups = {value: _diffusion_setup("unet", components, tiny_architecture, tiny_training_data,
+                                    **{setting: value}) for value in values}
+  _, params, frozen, batch, _ = setups[values[0]]
+  return {value: setup[0] for value, setup in setups.items()}, params, frozen, batch
+
+
 @pytest.mark.parametrize("stage", ["unet", "unet_alone", "controlnet"])
 def test_diffusion_steps_reduce_the_loss(stage, components, tiny_architecture,
                                          tiny_training_data):
@@ -161,11 +170,8 @@ def test_object_cells_mark_latent_cells_holding_any_object_pixel():
 
 def test_masked_ground_weight_weights_only_masked_cells_without_object(
     components, tiny_architecture, tiny_training_data):
-  _, params, frozen, batch, _ = _diffusion_setup("unet", components, tiny_architecture,
-                                                 tiny_training_data)
-  loss_fns = {weight: _diffusion_setup("unet", components, tiny_architecture, tiny_training_data,
-                                       masked_ground_loss_weight=weight)[0]
-              for weight in (1.0, 4.0)}
+  loss_fns, params, frozen, batch = _joint_stage_loss_fns(
+      "masked_ground_loss_weight", (1.0, 4.0), components, tiny_architecture, tiny_training_data)
   # Both weights in one program: XLA compiles their shared forward pass once (21 s against 30).
   both = jax.jit(lambda params, frozen, batch: {
       weight: loss_fn(params, frozen, batch, jax.random.key(2))[0]
@@ -183,11 +189,8 @@ def test_masked_ground_weight_weights_only_masked_cells_without_object(
 
 def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero(
     components, tiny_architecture, tiny_training_data):
-  _, params, frozen, batch, _ = _diffusion_setup("unet", components, tiny_architecture,
-                                                 tiny_training_data)
-  loss_fns = {dropout: _diffusion_setup("unet", components, tiny_architecture,
-                                        tiny_training_data, control_dropout=dropout)[0]
-              for dropout in (0.0, 1.0)}
+  loss_fns, params, frozen, batch = _joint_stage_loss_fns(
+      "control_dropout", (0.0, 1.0), components, tiny_architecture, tiny_training_data)
   # Zero convolutions made non-zero, so the ControlNet changes the UNet's output.
   params["controlnet"] = jax.tree.map(lambda value: value + 0.05, params["controlnet"])
   without = dict(params, controlnet=jax.tree.map(jnp.zeros_like, params["controlnet"]))
