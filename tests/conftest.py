@@ -32,8 +32,7 @@ os.environ.setdefault("JAX_ENABLE_COMPILATION_CACHE", "true")
 # default 2 compiles the tiny model's train steps ~30% faster, with results the tests accept
 # alike. Only the tests use it: the commands' long runs are run-bound, and it did not run a
 # NeRF faster (level 0 compiles faster still, but runs the NeRF fixtures 3x slower and changes
-# an exact-equality result: README, "Tests"). Commands the tests start inherit it; those that
-# set XLA_FLAGS themselves append to it.
+# an exact-equality result: README, "Tests"). Commands the tests start inherit it.
 XLA_OPTIMIZATION_LEVEL_FLAG = "--xla_backend_optimization_level"
 if XLA_OPTIMIZATION_LEVEL_FLAG not in os.environ.get("XLA_FLAGS", ""):
   os.environ["XLA_FLAGS"] = (f"{os.environ.get('XLA_FLAGS', '')} "

@@ -189,9 +189,8 @@ SHARDED_UPDATE = textwrap.dedent("""
 def test_the_update_sharded_over_two_four_and_eight_devices_equals_the_one_device_update(
     generator, random_model, tmp_path):
   output = tmp_path / "sharded.npz"
-  environment = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=(
-      f"{os.environ.get('XLA_FLAGS', '')} "
-      f"--xla_force_host_platform_device_count={max(SHARDED_DEVICE_COUNTS)}"))
+  environment = dict(os.environ, JAX_PLATFORMS="cpu",
+                     JAX_NUM_CPU_DEVICES=str(max(SHARDED_DEVICE_COUNTS)))
   result = subprocess.run([sys.executable, "-c", SHARDED_UPDATE, str(random_model),
                            str(Path(__file__).parent), str(output)], env=environment,
                           capture_output=True, text=True, timeout=600, check=False)
