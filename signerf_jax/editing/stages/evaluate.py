@@ -38,6 +38,8 @@ FIGURE_VIEWS = 6
 
 
 def evaluation_settings(context: EditContext) -> dict[str, Any]:
+  """The evaluate stage's key: the evaluation, consistency and NeRF-consistency settings and the
+  generation."""
   return {"evaluation": as_json(context.settings.evaluation),
           "consistency": as_json(context.settings.consistency),
           "nerf_consistency": as_json(context.settings.nerf_consistency),
@@ -127,6 +129,9 @@ def _figures(context: EditContext, iteration: int, nerfs, before, after) -> list
 
 
 def evaluate_edit(context: EditContext) -> str:
+  """Measures the edit at the held-out cameras (background preservation, adherence, independent
+  edits, CLIP, the edited NeRF's fit, solidity and correspondences, as configured), writes
+  evaluation/metrics.json and the figures and video; returns the summary line."""
   start = time.perf_counter()
   config = context.settings.evaluation
   measure_nerf = context.settings.nerf_consistency.enabled

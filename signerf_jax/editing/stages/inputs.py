@@ -73,6 +73,7 @@ def check_inputs(settings: EditSettings) -> list[str]:
 
 
 def original_settings(context: EditContext) -> dict[str, Any]:
+  """The original stage's key: the given run, or the data, training and capacity settings."""
   settings = context.settings
   if settings.edit.original_run:
     return {"original_run": str(Path(settings.edit.original_run).resolve())}
@@ -81,6 +82,8 @@ def original_settings(context: EditContext) -> dict[str, Any]:
 
 
 def train_original(context: EditContext) -> str:
+  """Step 1: trains the original NeRF on the dataset (or takes `EditConfig.original_run`);
+  returns the summary line."""
   if context.settings.edit.original_run:
     trained = context.nerf(0)
     return (f"using the trained NeRF {context.original_run_dir} (step {trained.step}, "
@@ -95,6 +98,8 @@ def train_original(context: EditContext) -> str:
 
 
 def select(context: EditContext) -> str:
+  """Step 2: writes the selection (box or proxy) to selection/; returns the summary line, which
+  says how many cameras see it."""
   selection = context.selection
   written = select_lib.write_selection(context.directory.path("selection"), selection)
   seeing = reference_cameras.cameras_seeing(context.views.cameras, selection.points)

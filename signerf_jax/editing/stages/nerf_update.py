@@ -27,6 +27,8 @@ def update_method(context: EditContext, iteration: int) -> str:
 
 
 def finetune_settings(context: EditContext, iteration: int) -> dict[str, Any]:
+  """The finetune stage's key: the method (retrain or fine-tune), its losses and training (and
+  capacity when retraining)."""
   method = update_method(context, iteration)
   settings = {"method": method, "losses": as_json(context.settings.finetune),
               "train": as_json(context.settings.training[method])}
@@ -52,6 +54,9 @@ def _start(context: EditContext, iteration: int):
 
 
 def update_nerf(context: EditContext, iteration: int = 1) -> str:
+  """Step 7: trains the edited NeRF on the iteration's edited dataset, retraining a new field
+  inside the edit region or fine-tuning the previous NeRF (`update_method`), into edited/; returns
+  the summary line."""
   method = update_method(context, iteration)
   dataset_dir = context.directory.path("dataset", iteration=iteration)
   edited = load_dataset(dataset_dir, split="all")

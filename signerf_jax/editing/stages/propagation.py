@@ -26,6 +26,7 @@ REFERENCE_VIEWS = "reference_views"
 
 
 def update_settings(context: EditContext, iteration: int) -> dict[str, Any]:
+  """The update stage's key: the seed, the generation, the propagation and the slot crops."""
   config = context.settings.sheet
   return {"seed": context.settings.edit.seed, "generation": context.generation_key(iteration),
           "propagation": context.settings.update.propagation, "crops": config.crops,
@@ -56,6 +57,9 @@ def _view_loader(context: EditContext, iteration: int):
 
 
 def update_image_set(context: EditContext, iteration: int = 1) -> str:
+  """Step 6: inpaints every training view that shows the selection (in the sheet's slot, alone, or
+  not at all: `UpdateConfig.propagation`) into update/images/, resuming views already done;
+  returns the summary line."""
   sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration),
                       ("rgb", "control"))
   if context.settings.update.propagation == REFERENCE_VIEWS:
@@ -145,6 +149,9 @@ def _provenance(context: EditContext, iteration: int) -> dict[str, Any]:
 
 
 def write_dataset(context: EditContext, iteration: int = 1) -> str:
+  """Writes the edited views (the originals where the selection is not seen; for `reference_views`,
+  the sheet's tiles at the reference cameras) as a nerfstudio dataset in dataset/, masks, control
+  depth and provenance alongside; returns the summary line."""
   dataset = context.dataset
   directory = context.directory.path("dataset", iteration=iteration)
   if context.settings.update.propagation == REFERENCE_VIEWS:

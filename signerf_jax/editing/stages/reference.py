@@ -24,6 +24,7 @@ GEOMETRY_ARRAYS = ("selected", "mask", "control", "control_depth")
 
 
 def reference_settings(context: EditContext) -> dict[str, Any]:
+  """The reference stage's key: the sheet layout, the model and the camera placement."""
   return {"sheet": as_json(context.settings.sheet), "model": context.settings.edit.model,
           "placement": as_json(context.settings.placement)}
 
@@ -46,11 +47,13 @@ def read_reference_cameras(path: str, count: int, tile_size: int) -> camera_lib.
 
 
 def cameras_to_json(cameras: camera_lib.Cameras) -> dict[str, Any]:
+  """`cameras` as JSON-ready fields (arrays stay numpy: `files.write_json` converts them)."""
   return {"camera_to_world": np.asarray(cameras.camera_to_world), "fx": np.asarray(cameras.fx),
           "fy": np.asarray(cameras.fy), "width": cameras.width, "height": cameras.height}
 
 
 def cameras_from_json(value: dict[str, Any]) -> camera_lib.Cameras:
+  """The cameras `cameras_to_json` wrote (read back from the reference's cameras.json)."""
   return camera_lib.Cameras.create(np.asarray(value["camera_to_world"]), np.asarray(value["fx"]),
                                    np.asarray(value["fy"]), width=value["width"],
                                    height=value["height"])
@@ -72,6 +75,11 @@ def first_iteration_cameras(context: EditContext, points=None):
 
 
 def render_reference(context: EditContext, iteration: int = 1) -> str:
+  """Steps 3-4: places the reference cameras (or reads the user's; a later iteration reuses the
+  first's) and renders their tiles from the NeRF before this iteration.
+
+  Writes reference/inputs.npz (render, mask, control, ... [N, S, S, ...] per tile), cameras.json
+  and tiles.png; returns the summary line."""
   layout = context.layout
   directory = context.directory.path("reference", iteration=iteration)
   if iteration == 1:

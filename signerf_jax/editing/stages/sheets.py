@@ -24,6 +24,8 @@ KnownSheets = Callable[[generation.SheetRecipe], "np.ndarray | None"]
 
 
 def sheet_inputs(context: EditContext, iteration: int) -> generation.SheetInputs:
+  """The sheet's inputs (rgb, mask, control assembled on the grid) from the iteration's reference
+  tiles."""
   tiles = load_arrays(context.directory.path("reference", "inputs.npz", iteration=iteration),
                       ("render", "control", "mask"))
   return generation.SheetInputs.from_tiles(tiles["render"], tiles["control"], tiles["mask"],
@@ -56,17 +58,23 @@ def _known_candidates(context: EditContext) -> KnownSheets:
 
 
 def preview_recipes(context: EditContext) -> list[generation.SheetRecipe]:
+  """The preview's candidates: one recipe per `PreviewConfig.seeds` then `recipes`, duplicates
+  dropped."""
   config = context.settings.preview
   texts = [str(seed) for seed in config.seeds] + list(config.recipes)
   return [generation.SheetRecipe.parse(text) for text in dict.fromkeys(texts)]
 
 
 def preview_settings(context: EditContext) -> dict[str, Any]:
+  """The preview stage's key: its recipes and the first iteration's generation settings."""
   return {"recipes": [str(recipe) for recipe in preview_recipes(context)],
           "generation": context.generation_key(1)}
 
 
 def preview(context: EditContext) -> str:
+  """Generates the candidate sheets one at a time (reusing those made with the same tiles and
+  settings) into preview/candidates/, redrawing preview.png as each comes; returns the summary
+  line."""
   recipes = preview_recipes(context)
   known, key = _known_candidates(context), _candidate_key(context)
   inputs = sheet_inputs(context, 1)
@@ -106,11 +114,14 @@ def preview(context: EditContext) -> str:
 
 
 def sheet_settings(context: EditContext, iteration: int) -> dict[str, Any]:
+  """The sheet stage's key: the chosen recipe and the iteration's generation settings."""
   return {"recipe": context.settings.edit.sheet_recipe(iteration),
           "generation": context.generation_key(iteration)}
 
 
 def generate_sheet(context: EditContext, iteration: int = 1) -> str:
+  """Step 5: the chosen sheet (taken from the preview when it made that recipe) in sheet/sheet.npz
+  (rgb [H, W, 3] in [0, 1], control, mask, recipe) and sheet.png; returns the summary line."""
   recipe = generation.SheetRecipe.parse(context.settings.edit.sheet_recipe(iteration))
   inputs = sheet_inputs(context, iteration)
   known = _known_candidates(context) if iteration == 1 else (lambda recipe: None)
