@@ -57,9 +57,9 @@ def _view_loader(context: EditContext, iteration: int):
 
 
 def update_image_set(context: EditContext, iteration: int = 1) -> str:
-  """Step 6: inpaints every training view that shows the selection (in the sheet's slot, alone, or
-  not at all: `UpdateConfig.propagation`) into update/images/, resuming views already done;
-  returns the summary line."""
+  """Step 6: inpaints every training view that shows the selection in the sheet's slot (or alone,
+  or none for `reference_views`: `UpdateConfig.propagation`) into update/images/, resuming views
+  already done; returns the summary line."""
   sheet = load_arrays(context.directory.path("sheet", "sheet.npz", iteration=iteration),
                       ("rgb", "control"))
   if context.settings.update.propagation == REFERENCE_VIEWS:
