@@ -32,6 +32,7 @@ State = TypeVar("State")
 
 
 def checkpoint_path(directory: str | os.PathLike) -> Path:
+  """The latest checkpoint's file in a run's `directory`."""
   return Path(directory) / CHECKPOINT_NAME
 
 

@@ -55,6 +55,7 @@ KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "de
 
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
+  """The `signerf` parser; only the subcommand named first in `argv` adds its options."""
   parser = argparse.ArgumentParser(prog="signerf", description=__doc__.splitlines()[0])
   subparsers = parser.add_subparsers(dest="command", required=True)
   for name, (module_name, help_text) in COMMANDS.items():
@@ -81,6 +82,7 @@ def use_compilation_cache() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+  """Runs the subcommand `argv` names; returns its exit code (2 with a message on bad input)."""
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser(argv).parse_args(argv)
   if args.command in KEEP_FREED_MEMORY_COMMANDS:

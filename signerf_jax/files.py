@@ -97,15 +97,19 @@ def _current_umask() -> int:
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+  """Writes `data` to `path` atomically: a reader sees the old file or the new, never a part."""
   with atomic_path(path) as temporary:
     temporary.write_bytes(data)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
+  """Writes `text` to `path` as UTF-8, atomically."""
   write_bytes(path, text.encode("utf-8"))
 
 
 def write_json(path: str | os.PathLike, value: Any) -> None:
+  """Writes `value` to `path` as indented JSON, atomically; numpy arrays, numpy scalars and paths
+  are converted."""
   write_text(path, json.dumps(value, indent=2, default=_json_default) + "\n")
 
 

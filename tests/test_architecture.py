@@ -5,7 +5,8 @@ default_model) turn
 gin and flags into calls and may import anything; no other module imports an edge. The other
 modules' folders import one way: each only from the folders below it in LAYERS and from the
 top-level modules, which import no folder. Only edges import gin, and no function is gin-bound.
-No module imports itself through a cycle. Modules and functions stay short enough to read.
+No module imports itself through a cycle. Modules and functions stay short enough to read, and
+every public function at a module's top level says what it does in a docstring.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ EDGE_MODULES = ("signerf_jax.cli", "signerf_jax.configs", "signerf_jax.editing.d
 # A module owns one idea and a function does one thing (issue 16's goal: lines, docstrings in).
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 60
+# The hooks every command module exposes to `signerf_jax.cli`, whose docstring defines them.
+COMMAND_HOOKS = ("add_arguments", "run")
 
 
 def is_edge(module: str) -> bool:
@@ -274,3 +277,23 @@ def test_long_functions_are_found():
   source = "def short():\n  return 1\n\nclass A:\n  def long(self):\n" + "    x = 1\n" * 3
   assert long_functions(source, 3) == ["long (4 lines)"]
   assert long_functions(source, 4) == []
+
+
+def undocumented_functions(source: str) -> list[str]:
+  """Public top-level functions of `source` without a docstring (command hooks excepted)."""
+  return [node.name for node in ast.parse(source).body
+          if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+          and not node.name.startswith("_") and node.name not in COMMAND_HOOKS
+          and ast.get_docstring(node) is None]
+
+
+def test_public_functions_have_docstrings():
+  undocumented = {name: found for name, source in sources().items()
+                  if (found := undocumented_functions(source))}
+  assert not undocumented, f"public functions without a docstring: {undocumented}"
+
+
+def test_undocumented_functions_are_found():
+  source = ('def bare():\n  return 1\n\ndef told():\n  """Says."""\n\ndef _private():\n  pass\n'
+            "\ndef run(args):\n  pass\n\nclass A:\n  def method(self):\n    pass\n")
+  assert undocumented_functions(source) == ["bare"]

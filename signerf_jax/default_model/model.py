@@ -213,10 +213,12 @@ def initial_params(shapes: dict[tuple[str, ...], Any], rng: np.random.Generator)
 
 
 def init_vae(components: Components, rng: np.random.Generator) -> dict:
+  """Starting VAE parameters (`initial_params` for the VAE's shapes)."""
   return initial_params(weights.abstract_params(components.vae), rng)
 
 
 def init_text_encoder(components: Components, rng: np.random.Generator) -> dict:
+  """Starting text-encoder parameters (`initial_params` for the CLIP text transformer's shapes)."""
   ids = jax.ShapeDtypeStruct((1, components.text.max_position_embeddings), np.int32)
   shapes = jax.eval_shape(lambda ids: clip_text.CLIPTextTransformer(components.text).init(
       jax.random.key(0), ids), ids)["params"]
@@ -224,6 +226,7 @@ def init_text_encoder(components: Components, rng: np.random.Generator) -> dict:
 
 
 def init_unet(components: Components, rng: np.random.Generator) -> dict:
+  """Starting UNet parameters (`initial_params` for the UNet's shapes)."""
   return initial_params(weights.abstract_params(components.unet), rng)
 
 
@@ -250,4 +253,5 @@ def init_controlnet(components: Components, unet_params: dict, rng: np.random.Ge
 
 
 def parameter_count(params) -> int:
+  """The number of scalars in a parameter pytree."""
   return int(sum(np.size(leaf) for leaf in jax.tree.leaves(params)))

@@ -270,4 +270,5 @@ def component_directory(path: str | os.PathLike, component: str) -> Path:
 
 
 def read_config(directory: Path) -> dict[str, Any]:
+  """A component directory's config.json (an InputError naming it when missing or malformed)."""
   return files.read_json(directory / "config.json")

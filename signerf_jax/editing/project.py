@@ -41,6 +41,7 @@ FRAME_NAME = "frame_{:05d}"
 
 
 def frame_name(index: int) -> str:
+  """The file stem of dataset view `index` (frame_00042 for 42)."""
   return FRAME_NAME.format(index)
 
 

@@ -104,6 +104,7 @@ def update_batch(generator: Generator, sheet_rgb, sheet_control, layout: sheet_l
 
 
 def edited_image_path(directory: str | os.PathLike, view_index: int) -> Path:
+  """Where the update writes view `view_index`'s edited image (PNG) under `directory`."""
   return Path(directory) / IMAGES_FOLDER / f"{frame_name(view_index)}.png"
 
 

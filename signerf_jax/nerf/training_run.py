@@ -116,6 +116,8 @@ class Trainer:
 
 def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
                      dataset: Dataset, data_options: dict[str, Any] | None = None) -> None:
+  """Records in the run's model.json what rebuilds its model: the scene, the capacity, the edit
+  region and its view dependence, a summary of the dataset and the options it was loaded with."""
   files.write_json(Path(run_dir) / MODEL_FILE, {
       "scene": dataclasses.asdict(model.scene),
       "capacity": dataclasses.asdict(model.capacity),
