@@ -61,9 +61,8 @@ def tower_config(config_class: Any, config: Mapping[str, Any], with_projection: 
 
 
 def layer_norm(config: Any, name: str) -> nn.LayerNorm:
-  # Two-pass variance as torch computes it: E[x²] - E[x]² cancels badly on CLIP's large
-  # activations.
   """A tower's LayerNorm (`config.layer_norm_eps`), its variance computed as torch does."""
+  # Two passes, as torch computes it: E[x²] - E[x]² cancels badly on CLIP's large activations.
   return nn.LayerNorm(epsilon=config.layer_norm_eps, use_fast_variance=False, name=name)
 
 
