@@ -8,8 +8,9 @@ kernels [kh, kw, in, out] (HWIO), dense kernels [in, out], norm `scale`/`bias` [
 
 The layers are dense (`Linear`), convolution (`Conv2d`, and `UpsampleConv`: nearest upsampling
 then a convolution), `GroupNorm` and `LayerNorm`. A convolution runs by the fastest exact
-algorithm for its size (`conv2d`: an im2col matmul, Winograd's F(2x2, 3x3) or XLA's own); the
-rewrites are differentiated as XLA's convolution.
+algorithm for its size (`conv2d`: an im2col matmul, Winograd's F(4x4, 3x3) or F(2x2, 3x3) --
+`signerf_jax.diffusion.winograd` -- or XLA's own); the rewrites are differentiated as XLA's
+convolution.
 
 Precision: `compute_dtype` is the dtype of the inputs of matmuls and convolutions (float32, or
 bfloat16 for the fast option); they always accumulate and return float32, and normalisation
@@ -28,6 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+
+from signerf_jax.diffusion import winograd
 
 Dtype = Any
 Padding = int | tuple[tuple[int, int], tuple[int, int]]
@@ -55,14 +58,18 @@ class Linear(nn.Module):
     return y
 
 
-# How convolutions are computed (measured on this CPU, batch 2, against XLA's own convolution):
-# 3x3 same-size ones on small maps as one im2col matmul (1.7x faster at 8x8x1280, even at
-# 16x16), on large maps by Winograd F(2x2, 3x3) once there are enough output tiles to amortise
-# transforming the kernel on every call (1.15-1.4x faster at 64x64x320 and 32x32x640) and as
-# long as its transformed input (4x the input) stays small -- full-resolution VAE maps of a
-# 1024x1536 sheet would need gigabytes. XLA's bfloat16 convolution is no faster than float32
-# while bfloat16 matmuls are ~1.8x faster, so with bfloat16 compute every other convolution is an
-# im2col matmul too when its patch matrix fits in IM2COL_MAX_BYTES.
+# How convolutions are computed (measured against XLA's own convolution, batch 2): 3x3 same-size
+# ones on small maps as one im2col matmul (1.7x faster at 8x8x1280, even at 16x16), on large maps
+# by Winograd's algorithm once there are enough output tiles to amortise transforming the kernel on
+# every call, and as long as the transformed input stays small -- full-resolution VAE maps of a
+# 1024x1536 sheet would need gigabytes. With at least WINOGRAD_MIN_TILES 4x4 tiles by F(4x4, 3x3)
+# (transformed input 2.25x the input), else with that many 2x2 tiles by F(2x2, 3x3) (4x the input):
+# on a Zen 3 CPU F(4x4) is 1.36-1.42x faster than F(2x2) at the UNet's 64x64 level and 1.56-1.72x
+# on SD's VAE decoder maps of 128-512 px, F(2x2) stays ahead at 32x32x640 (128 4x4 tiles), and
+# F(2x2) was 1.15-1.4x faster than XLA at 64x64x320 and 32x32x640 on the Zen 4 host of the first
+# measurements (experiments/bench_convolutions.py). XLA's bfloat16 convolution is no faster than
+# float32 while bfloat16 matmuls are ~1.8x faster, so with bfloat16 compute every other convolution
+# is an im2col matmul too when its patch matrix fits in IM2COL_MAX_BYTES.
 IM2COL_MAX_POSITIONS = 512
 IM2COL_MAX_BYTES = 2**29
 WINOGRAD_MIN_TILES = 512
@@ -148,77 +155,64 @@ def _differentiated_as(reference):
   return decorate
 
 
-def _winograd_input_transform(d: list[jax.Array]) -> list[jax.Array]:
-  """B^T d for F(2, 3) along one axis: four inputs -> four transformed values."""
-  return [d[0] - d[2], d[1] + d[2], d[2] - d[1], d[1] - d[3]]
+def _same_size_xla_conv(x: jax.Array, kernel: jax.Array, compute_dtype: Dtype) -> jax.Array:
+  return xla_conv(x, kernel, 1, 1, compute_dtype)
 
 
-def _winograd_kernel_transform(g: list[jax.Array]) -> list[jax.Array]:
-  """G g for F(2, 3) along one axis: three taps -> four transformed values."""
-  return [g[0], (g[0] + g[1] + g[2]) * 0.5, (g[0] - g[1] + g[2]) * 0.5, g[2]]
+@_differentiated_as(_same_size_xla_conv)
+def winograd_2x2_conv3x3(x: jax.Array, kernel: jax.Array, compute_dtype: Dtype) -> jax.Array:
+  """3x3 convolution, stride 1, padding 1, by Winograd's F(2x2, 3x3) (`winograd.conv3x3`).
 
-
-def _winograd_output_transform(m: list[jax.Array]) -> list[jax.Array]:
-  """A^T m for F(2, 3) along one axis: four products -> two outputs."""
-  return [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]
-
-
-@_differentiated_as(lambda x, kernel, compute_dtype: xla_conv(x, kernel, 1, 1, compute_dtype))
-def winograd_conv3x3(x: jax.Array, kernel: jax.Array, compute_dtype: Dtype) -> jax.Array:
-  """3x3 convolution, stride 1, padding 1, by Winograd's minimal filtering F(2x2, 3x3).
-
-  Each 2x2 output tile comes from a 4x4 input tile through 16 independent channel matmuls
-  instead of 36 (2.25x fewer FLOPs than direct convolution); the transforms are adds only, so
-  float32 results agree with direct convolution to ~1e-6 relative.
-
-  Args:
-    x: [B, H, W, C] with H and W even.
-    kernel: [3, 3, C, O] (HWIO).
-
-  Returns:
-    [B, H, W, O] float32.
+  x [B, H, W, C] with H and W even, kernel [3, 3, C, O] (HWIO) -> [B, H, W, O] float32.
   """
-  batch, height, width, channels = x.shape
-  out = kernel.shape[-1]
-  tile_rows, tile_cols = height // 2, width // 2
-  padded = jnp.pad(x.astype(jnp.float32), ((0, 0), (1, 1), (1, 1), (0, 0)))
-  rows = _winograd_input_transform([padded[:, r:r + height:2] for r in range(4)])
-  tiles = [value for row in rows for value in _winograd_input_transform(
-      [row[:, :, c:c + width:2] for c in range(4)])]  # 16 x [B, H/2, W/2, C]
-  tiles = jnp.stack(tiles).reshape(16, -1, channels).astype(compute_dtype)
-  kernel_rows = _winograd_kernel_transform(list(kernel.astype(jnp.float32)))
-  kernels = jnp.stack([value for row in kernel_rows for value in _winograd_kernel_transform(
-      list(row))]).astype(compute_dtype)  # [16, C, O]
-  products = lax.dot_general(tiles, kernels, (((2,), (1,)), ((0,), (0,))),
-                             preferred_element_type=jnp.float32)
-  products = products.reshape(4, 4, batch, tile_rows, tile_cols, out)
-  output_rows = _winograd_output_transform(list(products))  # 2 x [4, B, h, w, O]
-  output = jnp.stack([jnp.stack(_winograd_output_transform(list(row)), axis=3)
-                      for row in output_rows], axis=2)  # [B, h, 2, w, 2, O]
-  return output.reshape(batch, height, width, out)
+  return winograd.conv3x3(x, kernel, compute_dtype, output_tile=2)
+
+
+@_differentiated_as(_same_size_xla_conv)
+def winograd_4x4_conv3x3(x: jax.Array, kernel: jax.Array, compute_dtype: Dtype) -> jax.Array:
+  """The same by F(4x4, 3x3): H and W multiples of 4; 4x fewer FLOPs than direct convolution
+  (2.25x for F(2x2)), ~2e-5 relative error in float32."""
+  return winograd.conv3x3(x, kernel, compute_dtype, output_tile=4)
+
+
+def convolution_algorithm(x_shape: tuple[int, ...], kernel_shape: tuple[int, ...], stride: int,
+                          padding: Padding, compute_dtype: Dtype) -> str:
+  """How `conv2d` computes a convolution of these shapes (see above): "matmul" (1x1), "im2col",
+  "winograd_4x4", "winograd_2x2" or "xla"."""
+  batch, height, width, channels = x_shape
+  kernel_height, kernel_width, _, out = kernel_shape
+  if (kernel_height, kernel_width) == (1, 1) and stride == 1 and padding == 0:
+    return "matmul"
+  if (kernel_height, kernel_width) == (3, 3) and stride == 1 and padding == 1:
+    if batch * height * width <= IM2COL_MAX_POSITIONS:
+      return "im2col"
+    if getattr(_tracing, "winograd", True) and min(channels, out) >= WINOGRAD_MIN_CHANNELS:
+      for output_tile in (4, 2):
+        tiles = batch * height * width // output_tile**2
+        transformed_bytes = (output_tile + 2)**2 * tiles * channels * 4
+        if (height % output_tile == 0 and width % output_tile == 0
+            and tiles >= WINOGRAD_MIN_TILES
+            and transformed_bytes <= WINOGRAD_MAX_TRANSFORMED_BYTES):
+          return f"winograd_{output_tile}x{output_tile}"
+  patch_bytes = (batch * height * width // stride**2 * kernel_height * kernel_width * channels
+                 * jnp.dtype(compute_dtype).itemsize)
+  if jnp.dtype(compute_dtype) == jnp.bfloat16 and patch_bytes <= IM2COL_MAX_BYTES:
+    return "im2col"
+  return "xla"
 
 
 def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: Padding,
            compute_dtype: Dtype) -> jax.Array:
   """NHWC x HWIO convolution -> float32, by the fastest algorithm for its size (see above)."""
-  batch, height, width, channels = x.shape
-  kernel_height, kernel_width, _, out = kernel.shape
-  if (kernel_height, kernel_width) == (1, 1) and stride == 1 and padding == 0:
+  algorithm = convolution_algorithm(x.shape, kernel.shape, stride, padding, compute_dtype)
+  if algorithm == "matmul":
     return matmul(x, kernel[0, 0], compute_dtype)
-  if (kernel_height, kernel_width) == (3, 3) and stride == 1 and padding == 1:
-    if batch * height * width <= IM2COL_MAX_POSITIONS:
-      return im2col_conv(x, kernel, stride, padding, compute_dtype)
-    tiles = batch * height * width // 4
-    if (getattr(_tracing, "winograd", True) and height % 2 == 0 and width % 2 == 0
-        and tiles >= WINOGRAD_MIN_TILES
-        and min(channels, out) >= WINOGRAD_MIN_CHANNELS
-        and 16 * tiles * channels * 4 <= WINOGRAD_MAX_TRANSFORMED_BYTES):
-      return winograd_conv3x3(x, kernel, compute_dtype)
-  patch_bytes = (batch * height * width // stride**2 * kernel_height * kernel_width * channels
-                 * jnp.dtype(compute_dtype).itemsize)
-  if jnp.dtype(compute_dtype) == jnp.bfloat16 and patch_bytes <= IM2COL_MAX_BYTES:
-    return im2col_conv(x, kernel, stride, padding, compute_dtype)
-  return xla_conv(x, kernel, stride, padding, compute_dtype)
+  if algorithm == "winograd_4x4":
+    return winograd_4x4_conv3x3(x, kernel, compute_dtype)
+  if algorithm == "winograd_2x2":
+    return winograd_2x2_conv3x3(x, kernel, compute_dtype)
+  convolution = im2col_conv if algorithm == "im2col" else xla_conv
+  return convolution(x, kernel, stride, padding, compute_dtype)
 
 
 class Conv2d(nn.Module):

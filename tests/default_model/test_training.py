@@ -259,14 +259,14 @@ def test_checkpoint_restores_into_other_step_counts_and_refuses_another_model(
     training.restore_checkpoint(path, wider)
 
 
-@pytest.mark.parametrize("function", ["winograd", "upsample"])
+@pytest.mark.parametrize("function", ["winograd_2x2", "winograd_4x4", "upsample"])
 def test_fast_convolutions_take_the_convolution_gradient(function):
   """Training differentiates the fast convolution rewrites through XLA's convolution."""
   key_x, key_k, key_g = jax.random.split(jax.random.key(0), 3)
   x = jax.random.normal(key_x, (2, 8, 8, 64))
   kernel = jax.random.normal(key_k, (3, 3, 64, 64)) / 24
-  if function == "winograd":
-    fast = lambda x, kernel: layers.winograd_conv3x3(x, kernel, jnp.float32)
+  if function.startswith("winograd"):
+    fast = lambda x, kernel: getattr(layers, f"{function}_conv3x3")(x, kernel, jnp.float32)
     reference = lambda x, kernel: layers.xla_conv(x, kernel, 1, 1, jnp.float32)
   else:
     fast = lambda x, kernel: layers.upsample_conv(x, kernel, jnp.float32)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from jax import lax
 
-from signerf_jax.diffusion import layers
+from signerf_jax.diffusion import layers, winograd
 
 
 def direct_conv(x, kernel):
@@ -21,11 +21,30 @@ def random_conv_inputs(height, width, channels=8, out=5, seed=0):
           jax.random.normal(kernel_key, (3, 3, channels, out)) / np.sqrt(9 * channels))
 
 
-@pytest.mark.parametrize("height, width", [(6, 10), (2, 2)])
-def test_winograd_equals_direct_convolution(height, width):
+@pytest.mark.parametrize("function, height, width, tolerance", [
+    (layers.winograd_2x2_conv3x3, 6, 10, 1e-5), (layers.winograd_2x2_conv3x3, 2, 2, 1e-5),
+    (layers.winograd_4x4_conv3x3, 8, 12, 5e-5), (layers.winograd_4x4_conv3x3, 4, 4, 5e-5)],
+    ids=["2x2-tiles", "2x2-one-tile", "4x4-tiles", "4x4-one-tile"])
+def test_winograd_equals_direct_convolution(function, height, width, tolerance):
   x, kernel = random_conv_inputs(height, width)
-  out = jax.jit(layers.winograd_conv3x3, static_argnums=2)(x, kernel, jnp.float32)
-  np.testing.assert_allclose(out, direct_conv(x, kernel), atol=1e-5, rtol=0)
+  out = jax.jit(function, static_argnums=2)(x, kernel, jnp.float32)
+  np.testing.assert_allclose(out, direct_conv(x, kernel), atol=tolerance, rtol=0)
+
+
+def test_winograd_4x4_error_at_a_large_layer():
+  """F(4x4)'s larger transform constants cost accuracy: at 320 channels (SD's first level) the
+  error stays ~2e-5 of the outputs' scale, under the diffusers parity tolerance of 1e-4."""
+  x, kernel = random_conv_inputs(16, 16, channels=320, out=64)
+  expected = direct_conv(x, kernel)
+  error = np.abs(np.asarray(jax.jit(layers.winograd_4x4_conv3x3, static_argnums=2)(
+      x, kernel, jnp.float32)) - np.asarray(expected)).max()
+  assert error < 5e-5 * np.abs(np.asarray(expected)).max()
+
+
+def test_winograd_needs_whole_tiles():
+  x, kernel = random_conv_inputs(6, 8)
+  with pytest.raises(ValueError, match="divisible by 4; got 6x8"):
+    winograd.conv3x3(x, kernel, jnp.float32, output_tile=4)
 
 
 @pytest.mark.parametrize("kernel_size, stride, padding", [
@@ -42,27 +61,49 @@ def test_im2col_equals_direct_convolution(kernel_size, stride, padding):
 
 
 def test_conv2d_picks_the_algorithm_by_size():
-  kernel = jnp.zeros((3, 3, 64, 64))
+  def algorithm(shape, compute_dtype=jnp.float32):
+    return layers.convolution_algorithm(shape, (3, 3, 64, 64), 1, 1, compute_dtype)
 
-  def primitives(shape, compute_dtype=jnp.float32):
-    jaxpr = jax.make_jaxpr(lambda x: layers.conv2d(x, kernel, 1, 1, compute_dtype))(
-        jax.ShapeDtypeStruct(shape, jnp.float32))
-    return {str(equation.primitive) for equation in jaxpr.eqns}
-
-  winograd, im2col, odd = (2, 32, 32, 64), (2, 16, 16, 64), (2, 32, 31, 64)
-  huge = (1, 1024, 1536, 64)
-  assert "conv_general_dilated" not in primitives(winograd)
-  assert "concatenate" in primitives(im2col) and "conv_general_dilated" not in primitives(im2col)
-  assert "conv_general_dilated" in primitives(odd)  # neither fast path applies
-  assert "conv_general_dilated" in primitives(huge)  # Winograd would need 1.6 GB
-  assert "conv_general_dilated" not in primitives(odd, jnp.bfloat16)  # im2col: bf16 matmul
+  four_tiles, two_tiles, im2col, odd = (2, 64, 64, 64), (2, 32, 32, 64), (2, 16, 16, 64), (
+      2, 32, 31, 64)
+  assert algorithm(four_tiles) == "winograd_4x4"  # 512 4x4 tiles
+  assert algorithm(two_tiles) == "winograd_2x2"  # 128 4x4 tiles, 512 2x2 ones
+  assert algorithm((2, 64, 62, 64)) == "winograd_2x2"  # 62 is not a multiple of 4
+  assert algorithm(im2col) == "im2col"
+  assert algorithm(odd) == "xla"  # neither fast path applies
+  assert algorithm((1, 768, 768, 64)) == "winograd_4x4"  # 340 MB; F(2x2) would take 604
+  assert algorithm((1, 1024, 1536, 64)) == "xla"  # Winograd would need 0.9 GB (F(4x4))
+  assert algorithm(odd, jnp.bfloat16) == "im2col"  # bf16 matmul
   with layers.winograd_convolutions(False):
-    assert "conv_general_dilated" in primitives(winograd)
-    assert "conv_general_dilated" not in primitives(im2col)  # Only Winograd is turned off.
+    assert algorithm(four_tiles) == algorithm(two_tiles) == "xla"
+    assert algorithm(im2col) == "im2col"  # Only Winograd is turned off.
     with layers.winograd_convolutions(True):
-      assert "conv_general_dilated" not in primitives(winograd)
-    assert "conv_general_dilated" in primitives(winograd)
-  assert "conv_general_dilated" not in primitives(winograd)  # Back on after the block.
+      assert algorithm(two_tiles) == "winograd_2x2"
+    assert algorithm(two_tiles) == "xla"
+  assert algorithm(two_tiles) == "winograd_2x2"  # Back on after the block.
+
+
+@pytest.mark.parametrize("shape, algorithm", [
+    ((2, 64, 64, 64), "winograd_4x4"), ((2, 32, 32, 64), "winograd_2x2"),
+    ((2, 16, 16, 64), "im2col"), ((2, 32, 31, 64), "xla")])
+def test_conv2d_computes_by_the_algorithm_it_picks(shape, algorithm):
+  """Read from the traced program: XLA's convolution, im2col's concatenated patches, or a
+  Winograd rewrite (a custom gradient around a matmul batched over the 36 or 16 positions)."""
+  kernel = jnp.zeros((3, 3, 64, 64))
+  jaxpr = jax.make_jaxpr(lambda x: layers.conv2d(x, kernel, 1, 1, jnp.float32))(
+      jax.ShapeDtypeStruct(shape, jnp.float32))
+  primitives = {str(equation.primitive): equation for equation in jaxpr.eqns}
+  if algorithm == "xla":
+    assert "conv_general_dilated" in primitives
+    return
+  assert "conv_general_dilated" not in primitives
+  if algorithm == "im2col":
+    assert "concatenate" in primitives
+    return
+  matmuls = [equation.invars[0].aval.shape
+             for equation in primitives["custom_vjp_call"].params["call_jaxpr"].jaxpr.eqns
+             if str(equation.primitive) == "dot_general"]
+  assert [shape[0] for shape in matmuls] == [36 if algorithm == "winograd_4x4" else 16]
 
 
 @pytest.mark.parametrize("height, width", [(5, 7), (1, 1)])
