@@ -64,8 +64,8 @@ def test_conv2d_picks_the_algorithm_by_size():
   def algorithm(shape, compute_dtype=jnp.float32):
     return layers.convolution_algorithm(shape, (3, 3, 64, 64), 1, 1, compute_dtype)
 
-  four_tiles, two_tiles, im2col, odd = (2, 64, 64, 64), (2, 32, 32, 64), (2, 16, 16, 64), (
-      2, 32, 31, 64)
+  four_tiles, two_tiles = (2, 64, 64, 64), (2, 32, 32, 64)
+  im2col, odd = (2, 16, 16, 64), (2, 32, 31, 64)
   assert algorithm(four_tiles) == "winograd_4x4"  # 512 4x4 tiles
   assert algorithm(two_tiles) == "winograd_2x2"  # 128 4x4 tiles, 512 2x2 ones
   assert algorithm((2, 64, 62, 64)) == "winograd_2x2"  # 62 is not a multiple of 4
