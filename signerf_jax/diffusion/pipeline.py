@@ -313,8 +313,9 @@ def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask
     key: a PRNG key (split into one per sample) or [B] keys (sample b uses keys[b]).
     noise: instead of `key`, every random draw as arrays (see `sampler.SamplerNoise`).
     options: the generation knobs.
-    winograd_convolutions: False compiles ~6 s faster and samples ~30% slower (the shipped
-      model's sheet; `sampler.SamplerSettings`): for a program that runs once.
+    winograd_convolutions: False compiles faster and samples slower (the shipped model's
+      sheet: 1.6 s and 7% for one, 5.7 s and 17% for four; `sampler.SamplerSettings`): for a
+      program that runs a few times.
 
   Returns:
     [B, H, W, 3] float32 images in [0, 1].
