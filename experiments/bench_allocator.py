@@ -1,9 +1,12 @@
 """What keeping freed memory (`signerf_jax.allocator`) saves: the same work in fresh processes with
 glibc's default allocator and with the setting that `signerf train`, `finetune`, `render`, `eval`,
-`edit`, `demo` and `view` apply, alternating, so a busy machine slows both alike.
+`edit`, `demo` and `view` apply, alternating, so a busy machine slows both alike; and, as a third
+mode, glibc's defaults with its memory in transparent huge pages (`GLIBC_TUNABLES=
+glibc.malloc.hugetlb=1`: the same frees, 512x fewer page faults when the memory comes back).
 
   python experiments/bench_allocator.py \
       [--workloads nerf_train nerf_budget nerf_render unet_forward update] [--rounds 2] \
+      [--modes glibc_default keep_freed_memory huge_pages] \
       [--nerf_steps 300] [--budget_seconds 300] [--name bench_allocator]
   python experiments/bench_allocator.py --workloads nerf_eval viewer_frames --run RUN
 
@@ -68,7 +71,13 @@ from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 RESULTS = Path(__file__).resolve().parent / "results"
 LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" /
                           "data")) / "nerf_synthetic" / "lego"
-MODES = {"glibc_default": "0", "keep_freed_memory": "1"}
+# Each mode's environment: glibc's defaults; `allocator.keep_freed_memory`; or glibc's defaults
+# with malloc's memory in transparent huge pages (glibc >= 2.35 `hugetlb` tunable, read when the
+# process starts), so that a fresh block faults in once a 2-MiB page instead of once a 4 KiB one.
+MODES = {"glibc_default": {allocator.ENVIRONMENT_VARIABLE: "0"},
+         "keep_freed_memory": {allocator.ENVIRONMENT_VARIABLE: "1"},
+         "huge_pages": {allocator.ENVIRONMENT_VARIABLE: "0",
+                        "GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}}
 DEFAULT_WORKLOADS = ("nerf_train", "nerf_budget", "nerf_render", "unet_forward", "update")
 RUN_WORKLOADS = ("nerf_eval", "viewer_frames")  # They need a trained run (--run).
 WORKLOADS = (*DEFAULT_WORKLOADS, *RUN_WORKLOADS)
@@ -183,7 +192,7 @@ def run_child(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def measure_in_child(workload: str, mode: str, args: argparse.Namespace) -> dict[str, Any]:
-  environment = {**os.environ, allocator.ENVIRONMENT_VARIABLE: MODES[mode]}
+  environment = {**os.environ, **MODES[mode]}
   completed = subprocess.run(
       [sys.executable, __file__, "--child", workload, "--nerf_steps", str(args.nerf_steps),
        "--budget_seconds", str(args.budget_seconds),
@@ -195,46 +204,50 @@ def measure_in_child(workload: str, mode: str, args: argparse.Namespace) -> dict
 
 
 def summarise(workload: str, runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
-  """Medians per mode; for a fixed amount of work the ratio of seconds and whether every run
-  gave the same result, for a time budget (nerf_budget) the steps and PSNR reached."""
+  """Medians per mode and each mode's median speed-up over glibc's defaults (`speedups`); for a
+  fixed amount of work whether every run gave the same result, for a time budget (nerf_budget)
+  the steps and PSNR reached."""
   fields = ("seconds", "process_system_seconds", "minor_page_faults", "peak_rss_bytes")
   if workload == "nerf_budget":
     fields += ("steps", "result")
-  summary: dict[str, Any] = {mode: {field: statistics.median(run[field] for run in runs[mode])
-                                    for field in fields} for mode in MODES}
-  if workload == "nerf_budget":
-    summary["kept_over_default_steps"] = round(
-        summary["keep_freed_memory"]["steps"] / summary["glibc_default"]["steps"], 3)
-  else:
-    summary["default_over_kept_seconds"] = round(
-        summary["glibc_default"]["seconds"] / summary["keep_freed_memory"]["seconds"], 3)
-    summary["same_results"] = len({run["result"] for mode in MODES for run in runs[mode]}) == 1
+  summary: dict[str, Any] = {mode: {field: statistics.median(run[field] for run in mode_runs)
+                                    for field in fields} for mode, mode_runs in runs.items()}
+  summary["speedup_over_glibc_default"] = {
+      mode: round(statistics.median(speedups(workload, runs, mode)), 3)
+      for mode in runs if mode != "glibc_default"}
+  if workload != "nerf_budget":
+    summary["same_results"] = len({run["result"] for mode_runs in runs.values()
+                                   for run in mode_runs}) == 1
   return summary
 
 
-def speedups(workload: str, runs: dict[str, list[dict[str, Any]]]) -> list[float]:
-  """Per round: how much faster keeping freed memory was (default seconds over kept seconds;
-  for a time budget, kept steps over default steps)."""
-  pairs = zip(runs["glibc_default"], runs["keep_freed_memory"])
+def speedups(workload: str, runs: dict[str, list[dict[str, Any]]], mode: str) -> list[float]:
+  """Per round: how much faster `mode` was than glibc's defaults (default seconds over its
+  seconds; for a time budget, its steps over default steps)."""
+  pairs = zip(runs["glibc_default"], runs[mode])
   if workload == "nerf_budget":
-    return [kept["steps"] / default["steps"] for default, kept in pairs]
-  return [default["seconds"] / kept["seconds"] for default, kept in pairs]
+    return [other["steps"] / default["steps"] for default, other in pairs]
+  return [default["seconds"] / other["seconds"] for default, other in pairs]
 
 
 def write_figure(path: Path, result: dict[str, Any]) -> None:
-  """One row per workload: the median speed-up, the line spanning the rounds'."""
+  """One row per workload and mode: the median speed-up, the line spanning the rounds'."""
   rows = []
   for workload, measured in result["workloads"].items():
-    ratios = speedups(workload, measured["runs"])
-    rows.append((workload, statistics.median(ratios), min(ratios), max(ratios)))
+    for mode in measured["runs"]:
+      if mode != "glibc_default":
+        ratios = speedups(workload, measured["runs"], mode)
+        rows.append((f"{workload}, {mode}", statistics.median(ratios), min(ratios), max(ratios)))
   plotting.write_panels(path, [plotting.interval_chart(
-      "keeping freed memory: speed-up", rows, "x glibc's default (1 = same)", width=520)])
+      "allocator settings: speed-up", rows, "x glibc's default (1 = same)", width=620)])
 
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--workloads", nargs="+", choices=WORKLOADS,
                       default=list(DEFAULT_WORKLOADS))
+  parser.add_argument("--modes", nargs="+", choices=list(MODES), default=list(MODES),
+                      help="allocator settings to compare (glibc_default always runs)")
   parser.add_argument("--rounds", type=int, default=2, help="child runs per workload and mode")
   parser.add_argument("--nerf_steps", type=int, default=300, help="nerf_train's steps")
   parser.add_argument("--budget_seconds", type=float, default=300.0,
@@ -249,13 +262,14 @@ def main() -> None:
   if args.child:
     print(json.dumps(run_child(args)), flush=True)
     return
-  result: dict[str, Any] = {"machine": machine.record(), "rounds": args.rounds,
+  modes = ["glibc_default", *(mode for mode in args.modes if mode != "glibc_default")]
+  result: dict[str, Any] = {"machine": machine.record(), "rounds": args.rounds, "modes": modes,
                             "nerf_steps": args.nerf_steps,
                             "budget_seconds": args.budget_seconds, "workloads": {}}
   for workload in args.workloads:
-    runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode in MODES}
+    runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode in modes}
     for _ in range(args.rounds):
-      for mode in MODES:
+      for mode in modes:
         runs[mode].append(measure_in_child(workload, mode, args))
         print(workload, mode, runs[mode][-1], flush=True)
     result["workloads"][workload] = {"runs": runs, "summary": summarise(workload, runs)}
