@@ -314,8 +314,8 @@ def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask
     noise: instead of `key`, every random draw as arrays (see `sampler.SamplerNoise`).
     options: the generation knobs.
     winograd_convolutions: False compiles faster and samples slower (the shipped model's
-      sheet: 1.6 s and 7% for one, 5.7 s and 17% for four; `sampler.SamplerSettings`): for a
-      program that runs a few times.
+      sheet: 1.6 s less and 8% slower for one, 5.7 s less and 20% slower for four;
+      `sampler.SamplerSettings`): for a program that runs a few times.
 
   Returns:
     [B, H, W, 3] float32 images in [0, 1].
