@@ -60,10 +60,12 @@ class Linear(nn.Module):
 
 # How convolutions are computed (measured against XLA's own convolution, batch 2): 3x3 same-size
 # ones on small maps as one im2col matmul (1.7x faster at 8x8x1280, even at 16x16), on large maps
-# by Winograd's algorithm once there are enough output tiles to amortise transforming the kernel on
-# every call, and as long as the transformed input stays small -- full-resolution VAE maps of a
-# 1024x1536 sheet would need gigabytes. With at least WINOGRAD_MIN_TILES 4x4 tiles by F(4x4, 3x3)
-# (transformed input 2.25x the input), else with that many 2x2 tiles by F(2x2, 3x3) (4x the input):
+# by Winograd's algorithm once there are enough output tiles to pay for the input and output
+# transforms (the kernel's is computed once a sampler run: XLA hoists it out of the denoising
+# loop, experiments/bench_winograd_compile.py), and as long as the transformed input stays small
+# -- full-resolution VAE maps of a 1024x1536 sheet would need gigabytes. With at least
+# WINOGRAD_MIN_TILES 4x4 tiles by F(4x4, 3x3) (transformed input 2.25x the input), else with that
+# many 2x2 tiles by F(2x2, 3x3) (4x the input):
 # on a Zen 3 CPU F(4x4) is 1.36-1.42x faster than F(2x2) at the UNet's 64x64 level and 1.56-1.72x
 # on SD's VAE decoder maps of 128-512 px, F(2x2) stays ahead at 32x32x640 (128 4x4 tiles), and
 # F(2x2) was 1.15-1.4x faster than XLA at 64x64x320 and 32x32x640 on the Zen 4 host of the first
