@@ -8,7 +8,10 @@ forward) and achieved GFLOP/s against the CPU's fp32 peak as this run measures i
 GFLOP/s of large jitted fp32 matmuls, before and after the models, same threads), XLA's memory
 plan, the largest output difference from torch (both run the same random weights, converted
 through our loader's name and layout mapping), and the bf16-compute option's speed and error
-(with the weights stored in bf16).
+(with the weights stored in bf16). Our forwards are compiled as the sampler compiles them
+(`sampler.program`: fp32 with `sampler.FLOAT32_COMPILER_OPTIONS`, XLA:CPU's matmuls kept out of
+YNNPACK; bf16 with XLA's defaults); the fp32 one is also timed compiled with XLA's defaults
+(`xla_default_options`), side by side.
 JAX and torch runs alternate and medians are reported, so a busy machine slows both alike;
 process CPU seconds per forward are recorded too. With `benchmark.threads = 1` both run
 single-threaded, whose CPU time is the measure least disturbed by other jobs on a shared
@@ -36,8 +39,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import machine
 from signerf_jax import configs, files
-from signerf_jax.diffusion import model_configs, weights
+from signerf_jax.diffusion import model_configs, sampler, weights
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
@@ -134,13 +138,20 @@ def time_side_by_side(forwards: dict, repeats: int) -> dict[str, list[float]]:
 
 def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, repeats,
             peak_gflops: float, bf16_function=None) -> dict:
-  """Compiles, checks agreement, times JAX against torch (and the bf16 variant, interleaved)."""
+  """Compiles as the sampler compiles (`sampler.program`), checks agreement, times JAX against
+  torch, interleaved with the fp32 program under XLA's default options and the bf16 variant."""
   start = time.perf_counter()
-  compiled = jax_function.lower(*jax_args).compile()
+  compiled = jax_function.lower(*jax_args).compile(
+      compiler_options=sampler.FLOAT32_COMPILER_OPTIONS)
   compile_seconds = time.perf_counter() - start
   jax_output = np.asarray(compiled(*jax_args))
   difference = float(np.abs(jax_output - torch_output).max())
-  forwards = {"jax": lambda: jax.block_until_ready(compiled(*jax_args)), "torch": torch_forward}
+  start = time.perf_counter()
+  xla_default = jax_function.lower(*jax_args).compile()
+  xla_default_compile_seconds = time.perf_counter() - start
+  xla_default_difference = float(np.abs(np.asarray(xla_default(*jax_args)) - jax_output).max())
+  forwards = {"jax": lambda: jax.block_until_ready(compiled(*jax_args)), "torch": torch_forward,
+              "xla_default": lambda: jax.block_until_ready(xla_default(*jax_args))}
   if bf16_function is not None:
     # Weights stored in bf16, as `load_pipeline(dtype=bfloat16)` stores them: cast once, not in
     # every forward (which costs 22-52% of a bf16 forward: profile_diffusion.json).
@@ -163,7 +174,12 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
       "jax_memory_plan": memory_plan(compiled),
       "max_abs_difference_from_torch": difference,
       "output_abs_max": float(np.abs(torch_output).max()),
-      **{key: value for key, value in times.items() if not key.startswith("bf16")},
+      **{key: value for key, value in times.items() if key.split("_")[0] in ("jax", "torch")},
+      "xla_default_options": {
+          "seconds": median["xla_default"], "seconds_all": times["xla_default_seconds_all"],
+          "compile_seconds": xla_default_compile_seconds,
+          "max_abs_difference": xla_default_difference,
+          "over_sampler_options": median["xla_default"] / median["jax"]},
   }
   if bf16_function is not None:
     error = np.abs(bf16_output - jax_output)
@@ -176,7 +192,8 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
     }
   print(f"{name}: jax {median['jax']:.3f} s, torch {median['torch']:.3f} s, "
         f"ratio {result['jax_over_torch']:.3f}, compile {compile_seconds:.1f} s, "
-        f"{result['jax_gflops_per_second']:.0f} GFLOP/s, diff {difference:.2e}"
+        f"{result['jax_gflops_per_second']:.0f} GFLOP/s, diff {difference:.2e}, "
+        f"XLA's defaults {median['xla_default']:.3f} s"
         + (f", bf16 {median['bf16']:.3f} s" if "bf16" in result else ""), flush=True)
   return result
 
@@ -276,7 +293,8 @@ def main(argv=None) -> int:
   load_before = os.getloadavg()
   results = benchmark()
   results["machine"] = {
-      "processor": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+      "processor": platform.processor() or platform.machine(), "cpu": machine.cpu_model(),
+      "cpu_count": os.cpu_count(),
       "jax": jax.__version__,
       "load_average_before_after": [load_before[0], os.getloadavg()[0]],
       "process_peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,

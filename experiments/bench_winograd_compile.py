@@ -59,6 +59,26 @@ def kernel_transforms_by_place(hlo_text: str) -> dict[str, int]:
   return dict(places)
 
 
+def sheet_sampling(loaded: pipeline.Pipeline, batch: int, winograd: bool):
+  """What sampling `batch` random sheets of HEIGHT x WIDTH with `loaded` takes: `sampler.sample`'s
+  arguments before the noise, a function from a seed to the noise, and `pipeline.sampler_setup`'s
+  result (its guidance and settings complete the arguments)."""
+  prompt = pipeline.encode_prompts(loaded, PROMPT)
+  setup = pipeline.sampler_setup(loaded, HEIGHT, WIDTH, pipeline.GenerationOptions(), winograd)
+  random = np.random.default_rng(0)
+  inputs = sampler.InpaintingInputs(random.random((batch, HEIGHT, WIDTH, 3), np.float32),
+                                    np.ones((batch, HEIGHT, WIDTH, 1), np.float32),
+                                    random.random((batch, HEIGHT, WIDTH, 1), np.float32))
+  factor = loaded.models.latent_factor
+
+  def noise(seed: int) -> sampler.SamplerNoise:
+    return sampler.draw_noise(jax.random.split(jax.random.key(seed), batch),
+                              (HEIGHT // factor, WIDTH // factor, loaded.models.latent_channels),
+                              setup.schedule.num_steps)
+
+  return (loaded.models, setup.schedule, prompt, setup.time_ids, inputs), noise, setup
+
+
 def measure(batch: int, winograd: bool) -> dict:
   """Compiles and runs the sheet sampler once per process (see the module docstring)."""
   algorithms = collections.Counter()
@@ -71,23 +91,10 @@ def measure(batch: int, winograd: bool) -> dict:
 
   layers.convolution_algorithm = counting_choice
   loaded = pipeline.load_pipeline(DEFAULT_MODEL_DIR)
-  prompt = pipeline.encode_prompts(loaded, PROMPT)
-  setup = pipeline.sampler_setup(loaded, HEIGHT, WIDTH, pipeline.GenerationOptions(), winograd)
-  random = np.random.default_rng(0)
-  inputs = sampler.InpaintingInputs(random.random((batch, HEIGHT, WIDTH, 3), np.float32),
-                                    np.ones((batch, HEIGHT, WIDTH, 1), np.float32),
-                                    random.random((batch, HEIGHT, WIDTH, 1), np.float32))
-  factor = loaded.models.latent_factor
-
-  def noise(seed):
-    return sampler.draw_noise(jax.random.split(jax.random.key(seed), batch),
-                              (HEIGHT // factor, WIDTH // factor, loaded.models.latent_channels),
-                              setup.schedule.num_steps)
-
-  arguments = (loaded.models, setup.schedule, prompt, setup.time_ids, inputs)
+  arguments, noise, setup = sheet_sampling(loaded, batch, winograd)
   start = time.perf_counter()
-  compiled = sampler.sample.lower(*arguments, noise(0), setup.guidance,
-                                  setup.settings).compile()
+  compiled = sampler.program(loaded.models).lower(*arguments, noise(0), setup.guidance,
+                                                  settings=setup.settings).compile()
   compile_seconds = time.perf_counter() - start
   call_seconds = []
   for seed in range(4):

@@ -374,3 +374,25 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
     generated = mask_processing.paste_back(
         inputs.image, generated, mask_processing.blur_mask(inputs.mask, settings.mask_blur))
   return generated
+
+
+# How XLA compiles the sampler for float32 models. jaxlib 0.10's XLA:CPU hands every matmul to
+# YNNPACK by default (a "__ynn_fusion" per dot in the optimised HLO); this option keeps them XLA's
+# own dots. On this project's Zen 3 host (AVX2) that samples the shipped model's sheet 1.20x faster
+# at one sheet, 1.09x at the update's four (experiments/bench_sampler_options.py); SD 1.5's UNet
+# changes within noise (0.91-1.08x, bench_diffusion.py), NeRF training is ~10% slower, so only
+# this program sets it. bfloat16 models keep XLA's defaults: without YNNPACK SD 1.5's bfloat16
+# UNet ran 1.18x slower at 32x32 here (the shipped model's 1.26-1.46x faster), and bfloat16 pays
+# only on CPUs with bfloat16 instructions, which this host lacks. Every XLA backend's compile
+# options parse the field (it is in DebugOptions); only XLA:CPU reads it.
+FLOAT32_COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+_FLOAT32_SAMPLE = jax.jit(sample.__wrapped__, static_argnames=("settings",),
+                          compiler_options=FLOAT32_COMPILER_OPTIONS)
+
+
+def program(models: DiffusionModels):
+  """The jitted sampler `pipeline.generate` runs for `models` (`sample`'s arguments, `settings`
+  by keyword): `sample` compiled with `FLOAT32_COMPILER_OPTIONS` when the UNet computes in
+  float32, `sample` itself otherwise. Like any jit with compiler options, the float32 one cannot
+  be called inside another jit: there call `sample`, which that jit's options then compile."""
+  return _FLOAT32_SAMPLE if jnp.dtype(models.unet.compute_dtype) == jnp.float32 else sample

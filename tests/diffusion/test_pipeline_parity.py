@@ -243,11 +243,12 @@ def test_new_prompts_seeds_scales_and_images_reuse_the_compiled_sampler(checkpoi
       pipeline, pipeline_lib.encode_prompts(pipeline, prompts), inputs["image"] * scale_images,
       inputs["mask"], inputs["control"], key=jax.random.key(key), options=generation)
   baseline = run(PROMPTS, 0, first, 1.0)
-  cache_size = sampler.sample._cache_size()  # pylint: disable=protected-access
+  program = sampler.program(pipeline.models)
+  cache_size = program._cache_size()  # pylint: disable=protected-access
   second = dataclasses.replace(first, guidance_scale=6.0, controlnet_conditioning_scale=0.3,
                                control_guidance_start=0.0, control_guidance_end=0.5)
   changed = run(["a blue sofa", "a tree"], 1, second, 0.5)
-  assert sampler.sample._cache_size() == cache_size  # pylint: disable=protected-access
+  assert program._cache_size() == cache_size  # pylint: disable=protected-access
   assert np.abs(np.asarray(changed) - np.asarray(baseline)).max() > 1e-2
 
 

@@ -3,6 +3,8 @@
 The full pipeline's parity with diffusers is in test_pipeline_parity.py.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -69,7 +71,7 @@ def test_a_two_by_three_sheet_runs_and_memory_does_not_grow_with_the_steps():
         jnp.asarray(guidance_lib.controlnet_conditioning_scale_per_step(num_steps, 0.8)))
     return models, schedule, prompt, None, inputs, noise, guidance
 
-  compiled = {steps: sampler.sample.lower(*arguments(steps), settings=settings).compile()
+  compiled = {steps: sampler.program(models).lower(*arguments(steps), settings=settings).compile()
               for steps in (2, 5)}
   working_memory = {steps: program.memory_analysis().temp_size_in_bytes
                     for steps, program in compiled.items()}
@@ -83,6 +85,20 @@ def test_a_two_by_three_sheet_runs_and_memory_does_not_grow_with_the_steps():
   assert np.abs(out - np.asarray(inputs.image))[~outside].mean() > 0.05
 
 
+def small_sheet_arguments(height: int, width: int) -> tuple:
+  """`sampler.sample`'s arguments but the settings: the tiny models, 2 steps, one sheet."""
+  rng = np.random.default_rng(1)
+  image, mask, control = (jnp.asarray(rng.random((1, height, width, channels)), jnp.float32)
+                          for channels in (3, 1, 1))
+  schedule = solvers.make_schedule(schedulers.SchedulerConfig(kind="dpm_solver_multistep"), 2)
+  return (tiny_models(), schedule,
+          clip_text.PromptEmbeddings(jnp.ones((1, 8, TEXT_WIDTH)), jnp.zeros((1, 8, TEXT_WIDTH))),
+          None, sampler.InpaintingInputs(image, jnp.round(mask), control),
+          sampler.draw_noise(jax.random.split(jax.random.key(0), 1),
+                             (height // 4, width // 4, 4), 2),
+          guidance_lib.Guidance(jnp.float32(7.5), jnp.ones((2,), jnp.float32)))
+
+
 def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatch):
   """Without Winograd (the preview's quick-to-compile program) the sampler is its own compiled
   program, with XLA's convolutions where Winograd's matmuls were, and samples the same image to
@@ -90,27 +106,45 @@ def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatc
   monkeypatch.setattr(layers, "IM2COL_MAX_POSITIONS", 0)
   monkeypatch.setattr(layers, "WINOGRAD_MIN_TILES", 1)
   monkeypatch.setattr(layers, "WINOGRAD_MIN_CHANNELS", 8)
-  height, width = 40, 24  # A size no other test samples, so no program is shared with them.
-  rng = np.random.default_rng(1)
-  image, mask, control = (jnp.asarray(rng.random((1, height, width, channels)), jnp.float32)
-                          for channels in (3, 1, 1))
-  schedule = solvers.make_schedule(schedulers.SchedulerConfig(kind="dpm_solver_multistep"), 2)
-  arguments = (tiny_models(), schedule,
-               clip_text.PromptEmbeddings(jnp.ones((1, 8, TEXT_WIDTH)),
-                                          jnp.zeros((1, 8, TEXT_WIDTH))), None,
-               sampler.InpaintingInputs(image, jnp.round(mask), control),
-               sampler.draw_noise(jax.random.split(jax.random.key(0), 1),
-                                  (height // 4, width // 4, 4), 2),
-               guidance_lib.Guidance(jnp.float32(7.5), jnp.ones((2,), jnp.float32)))
-  lowered = {winograd: sampler.sample.lower(*arguments, settings=sampler.SamplerSettings(
-      winograd_convolutions=winograd)) for winograd in (True, False)}
+  # A size no other test samples, so no program is shared with them.
+  arguments = small_sheet_arguments(40, 24)
+  lowered = {winograd: sampler.program(arguments[0]).lower(
+      *arguments, settings=sampler.SamplerSettings(winograd_convolutions=winograd))
+             for winograd in (True, False)}
   convolutions = {winograd: program.as_text().count("stablehlo.convolution")
                   for winograd, program in lowered.items()}
   assert convolutions[False] > convolutions[True]
   images = {winograd: np.asarray(program.compile()(*arguments))
             for winograd, program in lowered.items()}
   np.testing.assert_allclose(images[False], images[True], atol=1e-4)
+  image = arguments[4].image
   assert np.abs(images[True] - np.asarray(image)).mean() > 0.01  # It did generate something.
+
+
+def test_float32_models_sample_without_ynnpack_bfloat16_ones_with_xla_defaults():
+  """`sampler.FLOAT32_COMPILER_OPTIONS` reach the float32 models' program: XLA:CPU's defaults
+  (bfloat16 models' program, `sample` itself, and so a caller's own jit around it) hand its
+  matmuls to YNNPACK fusions. Both compilations of the float32 models sample the same images to
+  float rounding."""
+  arguments = small_sheet_arguments(24, 32)
+  models = arguments[0]
+  bfloat16_models = models.replace(**{
+      name: dataclasses.replace(getattr(models, name), compute_dtype=jnp.bfloat16)
+      for name in ("unet", "controlnet")})
+  settings = sampler.SamplerSettings()
+  programs = {
+      "float32": sampler.program(models).lower(*arguments, settings=settings),
+      "bfloat16": sampler.program(bfloat16_models).lower(bfloat16_models, *arguments[1:],
+                                                         settings=settings),
+      "caller_jit": jax.jit(sampler.sample, static_argnames=("settings",)).lower(
+          *arguments, settings=settings)}
+  programs = {name: lowered.compile() for name, lowered in programs.items()}
+  ynnpack_fusions = {name: program.as_text().count('"kind":"__ynn_fusion"')
+                     for name, program in programs.items()}
+  assert ynnpack_fusions["float32"] == 0
+  assert ynnpack_fusions["bfloat16"] > 0 and ynnpack_fusions["caller_jit"] > 0
+  np.testing.assert_allclose(np.asarray(programs["float32"](*arguments)),
+                             np.asarray(programs["caller_jit"](*arguments)), atol=1e-4)
 
 
 def test_noise_of_a_sample_depends_only_on_its_key():

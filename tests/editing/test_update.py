@@ -78,7 +78,8 @@ def test_an_interrupted_update_resumes_to_exactly_the_uninterrupted_images(gener
     if len(list((tmp_path / "resumed" / "images").glob("*.png"))) == 3:
       raise KeyboardInterrupt  # What Ctrl-C raises, between two views of a batch.
 
-  cache_size = sampler.sample._cache_size()  # pylint: disable=protected-access
+  program = sampler.program(generator.pipeline.models)
+  cache_size = program._cache_size()  # pylint: disable=protected-access
   with pytest.raises(KeyboardInterrupt):
     run(generator, tmp_path / "resumed", views, on_view_written=interrupt_after_three)
   assert len(written(tmp_path / "resumed")) == 2 * 3  # Three views: tile and image each.
@@ -86,7 +87,7 @@ def test_an_interrupted_update_resumes_to_exactly_the_uninterrupted_images(gener
   assert resumed["resumed"] == 3 and resumed["edited"] == NUM_VIEWS - 3
   assert written(tmp_path / "resumed") == written(tmp_path / "complete")
   # Every batch has the same shape: nothing compiled after the first run.
-  assert sampler.sample._cache_size() == cache_size  # pylint: disable=protected-access
+  assert program._cache_size() == cache_size  # pylint: disable=protected-access
   # A finished update does no work at all.
   assert run(generator, tmp_path / "resumed", views)["batches"] == 0
 
