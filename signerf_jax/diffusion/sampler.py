@@ -383,8 +383,8 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
 # changes within noise (0.91-1.08x, bench_diffusion.py), NeRF training is ~10% slower, so only
 # this program sets it. bfloat16 models keep XLA's defaults: without YNNPACK SD 1.5's bfloat16
 # UNet ran 1.18x slower at 32x32 here (the shipped model's 1.26-1.46x faster), and bfloat16 pays
-# only on CPUs with bfloat16 instructions, which this host lacks. Every XLA backend's compile
-# options parse the field (it is in DebugOptions); only XLA:CPU reads it.
+# only on CPUs with bfloat16 instructions, which this host lacks. On GPUs and TPUs, where the
+# option means nothing and this project cannot test it, the sampler keeps XLA's defaults too.
 FLOAT32_COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 _FLOAT32_SAMPLE = jax.jit(sample.__wrapped__, static_argnames=("settings",),
                           compiler_options=FLOAT32_COMPILER_OPTIONS)
@@ -393,6 +393,8 @@ _FLOAT32_SAMPLE = jax.jit(sample.__wrapped__, static_argnames=("settings",),
 def program(models: DiffusionModels):
   """The jitted sampler `pipeline.generate` runs for `models` (`sample`'s arguments, `settings`
   by keyword): `sample` compiled with `FLOAT32_COMPILER_OPTIONS` when the UNet computes in
-  float32, `sample` itself otherwise. Like any jit with compiler options, the float32 one cannot
-  be called inside another jit: there call `sample`, which that jit's options then compile."""
-  return _FLOAT32_SAMPLE if jnp.dtype(models.unet.compute_dtype) == jnp.float32 else sample
+  float32 on a CPU, `sample` itself otherwise. Like any jit with compiler options, the float32
+  one cannot be called inside another jit: there call `sample`, which that jit's options then
+  compile."""
+  float32 = jnp.dtype(models.unet.compute_dtype) == jnp.float32
+  return _FLOAT32_SAMPLE if float32 and jax.default_backend() == "cpu" else sample
