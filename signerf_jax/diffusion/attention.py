@@ -2,10 +2,13 @@
 
 `dot_product_attention` never builds the full [batch, heads, queries, keys] score tensor for
 large inputs: above `AttentionOptions.max_plain_scores` score elements it walks over the
-batch x heads one at a time and, within a head, over chunks of `query_chunk_size` queries
-(`lax.map`), so the live score block is [query_chunk_size, keys] -- 100 MB for 1,024 queries
-against the 24,576 keys of an SDXL 1024x1536 sheet, whatever the sheet size. Within a chunk the
-softmax is exact (every key is present), so the result equals plain softmax attention up to
+batch x heads one at a time, within a head over equal chunks of at most `query_chunk_size`
+queries (`lax.map`), and within a chunk over blocks of at most `key_chunk_size` keys with an
+online softmax (Rabe & Staats 2021, "Self-attention does not need O(n^2) memory"; FlashAttention's
+loop): each block's scores are exponentiated against the running row maximum, and the running
+sum and weighted values are rescaled when a later block raises it. The live score block is
+[query chunk, key block] -- 2 MB by default, whatever the sheet size -- so it stays in the CPU's
+cache between the two matmuls and the softmax. The result equals plain softmax attention up to
 float rounding. Only tiny problems use the plain batched einsum.
 """
 
@@ -29,15 +32,64 @@ class AttentionOptions(validation.CheckedFields):
   gin: `AttentionOptions.<field>`).
 
   Attributes:
-    query_chunk_size: queries per block in the chunked path; the live score block of one head is
-      [query_chunk_size, keys] float32.
+    query_chunk_size: most queries per chunk in the chunked path (the queries are split into
+      equal chunks, so 1,536 queries make two of 768).
+    key_chunk_size: most keys per block of a chunk's online softmax (keys split likewise); the
+      live score block of one head is [query chunk, key block] float32. At least the key count
+      (e.g. 2**31) evaluates each chunk against all keys at once.
     max_plain_scores: largest batch * heads * queries * keys evaluated as one plain einsum
       (2**18 elements = 1 MB of float32 scores); larger problems take the chunked path, which
       on CPU is also the faster one from a few hundred tokens up (e.g. 2x for 4,096 queries
       against 77 text tokens).
   """
   query_chunk_size: PositiveInt = 1024
+  key_chunk_size: PositiveInt = 512
   max_plain_scores: NonNegativeInt = 2**18
+
+
+def _equal_chunks(tokens: int, most: int) -> tuple[int, int]:
+  """(chunks, chunk size): the fewest chunks of at most `most` tokens, as equal as padding by
+  fewer than `chunks` tokens allows."""
+  chunks = -(-tokens // most)
+  return chunks, -(-tokens // chunks)
+
+
+def _block_scores(queries: jax.Array, keys: jax.Array, valid: jax.Array | None) -> jax.Array:
+  """Scores [Q, K] float32 of queries [Q, D] against keys [K, D]; -inf where `valid` [K] is
+  False (padding keys), so they get zero weight."""
+  scores = lax.dot_general(queries, keys, (((1,), (1,)), ((), ())),
+                           preferred_element_type=jnp.float32)
+  return scores if valid is None else jnp.where(valid, scores, -jnp.inf)
+
+
+def _attend_chunk(queries: jax.Array, keys: jax.Array, values: jax.Array,
+                  valid: jax.Array | None, compute_dtype: Dtype) -> jax.Array:
+  """Softmax attention of queries [Q, D] over keys and values [blocks, block, D] (`valid`
+  [blocks, block] marks the real keys; None: all are) -> [Q, D] float32."""
+  if keys.shape[0] == 1:  # One block holds every key: no padding, no running rescale.
+    scores = _block_scores(queries, keys[0], None)
+    unnormalised = jnp.exp(scores - jnp.max(scores, axis=-1, keepdims=True))
+    out = jnp.dot(unnormalised.astype(compute_dtype), values[0],
+                  preferred_element_type=jnp.float32)
+    return out / jnp.sum(unnormalised, axis=-1, keepdims=True)
+
+  def attend_one_block(state, inputs):
+    # state: the running row maximum [Q], the sum of exp(score - maximum) [Q] and the values
+    # weighted by it [Q, D], over the blocks so far.
+    running_max, running_sum, weighted = state
+    block_keys, block_values, block_valid = inputs
+    scores = _block_scores(queries, block_keys, block_valid)
+    new_max = jnp.maximum(running_max, jnp.max(scores, axis=-1))
+    unnormalised = jnp.exp(scores - new_max[:, None])
+    rescale = jnp.exp(running_max - new_max)  # 0 after the first block (its max is -inf).
+    weighted = weighted * rescale[:, None] + jnp.dot(
+        unnormalised.astype(compute_dtype), block_values, preferred_element_type=jnp.float32)
+    return (new_max, running_sum * rescale + jnp.sum(unnormalised, axis=-1), weighted), None
+
+  count = queries.shape[0]
+  start = (jnp.full((count,), -jnp.inf), jnp.zeros((count,)), jnp.zeros((count, keys.shape[-1])))
+  (_, total, weighted), _ = lax.scan(attend_one_block, start, (keys, values, valid))
+  return weighted / total[:, None]
 
 
 def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
@@ -48,7 +100,7 @@ def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
   Args:
     query: [B, Tq, H, D].
     key, value: [B, Tk, H, D].
-    options: plain-versus-chunked switch and chunk size.
+    options: plain-versus-chunked switch and chunk sizes.
     compute_dtype: input dtype of the two matmuls (they accumulate in float32; the softmax is
       always float32).
 
@@ -64,32 +116,29 @@ def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
     weights = jax.nn.softmax(scores, axis=-1).astype(compute_dtype)
     return jnp.einsum("bhqk,bkhd->bqhd", weights, value, preferred_element_type=jnp.float32)
 
-  chunk = min(options.query_chunk_size, query_tokens)
-  chunks = -(-query_tokens // chunk)
-  padded = chunks * chunk
-  if padded != query_tokens:  # Padded queries attend harmlessly and are sliced off below.
-    query = jnp.pad(query, ((0, 0), (0, padded - query_tokens), (0, 0), (0, 0)))
-  # One (batch, head) pair at a time: [B*H, chunks, chunk, D] queries, [B*H, Tk, D] keys/values.
-  per_head = lambda x: x.transpose(0, 2, 1, 3).reshape(batch * heads, -1, head_dim)
-  query = per_head(query).reshape(batch * heads, chunks, chunk, head_dim)
-  key, value = per_head(key), per_head(value)
+  chunks, chunk = _equal_chunks(query_tokens, options.query_chunk_size)
+  blocks, block = _equal_chunks(key_tokens, options.key_chunk_size)
+  # Padded queries attend harmlessly and are sliced off below; padded keys are masked out.
+  pad = lambda x, size: jnp.pad(x, ((0, 0), (0, size - x.shape[1]), (0, 0), (0, 0)))
+  query = pad(query, chunks * chunk)
+  key, value = pad(key, blocks * block), pad(value, blocks * block)
+  valid = None
+  if blocks * block != key_tokens:
+    valid = (jnp.arange(blocks * block) < key_tokens).reshape(blocks, block)
+  # One (batch, head) pair at a time: [B*H, chunks, chunk, D] queries, [B*H, blocks, block, D]
+  # keys and values.
+  per_head = lambda x, count, size: x.transpose(0, 2, 1, 3).reshape(batch * heads, count, size,
+                                                                     head_dim)
+  query = per_head(query, chunks, chunk)
+  key, value = per_head(key, blocks, block), per_head(value, blocks, block)
 
   def attend_one_head(inputs):
     head_queries, head_keys, head_values = inputs
-
-    def attend_one_chunk(chunk_queries):
-      scores = lax.dot_general(chunk_queries, head_keys, (((1,), (1,)), ((), ())),
-                               preferred_element_type=jnp.float32)
-      unnormalised = jnp.exp(scores - jnp.max(scores, axis=-1, keepdims=True))
-      denominator = jnp.sum(unnormalised, axis=-1, keepdims=True)
-      out = jnp.dot(unnormalised.astype(compute_dtype), head_values,
-                    preferred_element_type=jnp.float32)
-      return out / denominator
-
-    return lax.map(attend_one_chunk, head_queries)
+    return lax.map(lambda queries: _attend_chunk(queries, head_keys, head_values, valid,
+                                                 compute_dtype), head_queries)
 
   out = lax.map(attend_one_head, (query, key, value))  # [B*H, chunks, chunk, D]
-  out = out.reshape(batch, heads, padded, head_dim)[:, :, :query_tokens]
+  out = out.reshape(batch, heads, chunks * chunk, head_dim)[:, :, :query_tokens]
   return out.transpose(0, 2, 1, 3)
 
 

@@ -1,13 +1,18 @@
 """Attention: the chunked path equals plain softmax attention and stays within its memory bound."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from signerf_jax.diffusion import attention as attention_lib
 from signerf_jax.diffusion.attention import AttentionOptions, dot_product_attention
 
 CHUNKED = AttentionOptions(query_chunk_size=64, max_plain_scores=0)
+# Chunks of queries and blocks of keys (the online softmax).
+BLOCKED = AttentionOptions(query_chunk_size=64, key_chunk_size=64, max_plain_scores=0)
 attention = jax.jit(dot_product_attention, static_argnums=(3, 4))
 
 
@@ -28,19 +33,61 @@ def random_qkv(query_tokens, key_tokens, heads=3, head_dim=8, seed=0, scale=3.0)
 
 
 @pytest.mark.parametrize("query_tokens, key_tokens, options", [
-    (256, 256, AttentionOptions()), (256, 256, CHUNKED), (200, 77, CHUNKED), (65, 300, CHUNKED)])
+    (256, 256, AttentionOptions()), (256, 256, CHUNKED), (200, 77, CHUNKED), (65, 300, CHUNKED),
+    (256, 256, BLOCKED), (200, 300, BLOCKED), (65, 301, BLOCKED), (64, 65, BLOCKED)])
 def test_matches_softmax_attention(query_tokens, key_tokens, options):
-  """Token counts that are not multiples of the chunk exercise the query padding."""
+  """Token counts that are not multiples of the chunk exercise the query padding; with key
+  blocks, 301 keys (5 blocks of 61) and 65 (2 of 33) the masked padding keys."""
   query, key, value = random_qkv(query_tokens, key_tokens)
   out = attention(query, key, value, options)
   assert out.shape == query.shape and out.dtype == jnp.float32
   np.testing.assert_allclose(out, reference_attention(query, key, value), atol=2e-5, rtol=0)
 
 
+@pytest.mark.parametrize("tokens, most, expected", [
+    (4096, 1024, (4, 1024)), (1536, 1024, (2, 768)), (77, 512, (1, 77)), (300, 64, (5, 60)),
+    (301, 64, (5, 61)), (1, 64, (1, 1))])
+def test_tokens_split_into_the_fewest_equal_chunks(tokens, most, expected):
+  assert attention_lib._equal_chunks(tokens, most) == expected  # pylint: disable=protected-access
+
+
+@pytest.mark.parametrize("peak_block", [0, 2, 4])
+def test_online_softmax_survives_a_dominant_key_in_any_block(peak_block):
+  """Scores of ~300: one key per query far above the rest, in the first, a middle or the last
+  of 5 key blocks. A later maximum rescales the earlier blocks' sums to 0 exactly; an earlier
+  one makes the later blocks' exponentials underflow; neither may give inf or NaN."""
+  query, key, value = random_qkv(64, 320, heads=1, scale=1.0)
+  key = key.at[:, 64 * peak_block + 7].set(300.0 * query[:, 0] / jnp.linalg.norm(query[:, 0]))
+  query = query.at[:, :].set(query[:, :1])  # Every query is the first: the peak is the same key.
+  out = attention(query, key, value, BLOCKED)
+  assert np.isfinite(np.asarray(out)).all()
+  np.testing.assert_allclose(out, reference_attention(query, key, value), atol=2e-5, rtol=0)
+  np.testing.assert_allclose(out[:, 0], value[:, 64 * peak_block + 7], atol=2e-5)
+
+
+def test_blocked_attention_gradients_are_finite_and_match_plain_attention():
+  query, key, value = random_qkv(64, 200, scale=2.0)
+  loss = lambda options: lambda q, k, v: jnp.sum(jnp.sin(attention(q, k, v, options)))
+  plain = jax.grad(loss(AttentionOptions(max_plain_scores=2**30)), argnums=(0, 1, 2))(
+      query, key, value)
+  blocked = jax.grad(loss(BLOCKED), argnums=(0, 1, 2))(query, key, value)
+  for expected, got in zip(plain, blocked):
+    assert np.isfinite(np.asarray(got)).all()
+    np.testing.assert_allclose(got, expected, atol=1e-4, rtol=0)
+
+
+def test_a_second_call_with_new_values_does_not_recompile():
+  query, key, value = random_qkv(65, 301)
+  attention(query, key, value, BLOCKED)
+  compiled = attention._cache_size()  # pylint: disable=protected-access
+  attention(query + 1, key, value * 2, BLOCKED)
+  assert attention._cache_size() == compiled  # pylint: disable=protected-access
+
+
 def test_bfloat16_compute_is_close():
   query, key, value = random_qkv(128, 128, scale=1.0)
   expected = reference_attention(query, key, value)
-  for options in (AttentionOptions(), CHUNKED):
+  for options in (AttentionOptions(), CHUNKED, BLOCKED):
     out = attention(query, key, value, options, jnp.bfloat16)
     assert out.dtype == jnp.float32
     error = np.abs(np.asarray(out) - expected).max()
@@ -59,5 +106,9 @@ def test_chunked_path_never_holds_the_full_score_matrix():
 
   plain = temporary_bytes(AttentionOptions(max_plain_scores=tokens * tokens))
   assert plain > full_scores_bytes / 2
-  chunked = temporary_bytes(AttentionOptions(query_chunk_size=chunk, max_plain_scores=0))
+  every_key = AttentionOptions(query_chunk_size=chunk, key_chunk_size=tokens, max_plain_scores=0)
+  chunked = temporary_bytes(every_key)
   assert chunked < 4 * chunk * tokens * 4
+  # Blocks of 512 keys: the live score block is 512 KB, a chunk against every key 4 MB.
+  blocked = temporary_bytes(dataclasses.replace(every_key, key_chunk_size=512))
+  assert blocked < 4 * chunk * 512 * 4 < chunked
