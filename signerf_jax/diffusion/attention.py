@@ -81,7 +81,7 @@ def _attend_chunk(queries: jax.Array, keys: jax.Array, values: jax.Array,
     scores = _block_scores(queries, block_keys, block_valid)
     new_max = jnp.maximum(running_max, jnp.max(scores, axis=-1))
     unnormalised = jnp.exp(scores - new_max[:, None])
-    rescale = jnp.exp(running_max - new_max)  # 0 after the first block (its max is -inf).
+    rescale = jnp.exp(running_max - new_max)  # 0 at the first block: the max starts at -inf.
     weighted = weighted * rescale[:, None] + jnp.dot(
         unnormalised.astype(compute_dtype), block_values, preferred_element_type=jnp.float32)
     return (new_max, running_sum * rescale + jnp.sum(unnormalised, axis=-1), weighted), None
