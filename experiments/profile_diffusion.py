@@ -1,7 +1,7 @@
 """Where the UNet's (and UNet + ControlNet's) forward time goes on this CPU, by kind of work.
 
-  python experiments/profile_diffusion.py [--latent_sizes 32 64] [--repeats 2]
-      [--name profile_diffusion]
+  python experiments/profile_diffusion.py [--latent_sizes 32 64] [--repeats 3]
+      [--parts operations components] [--name profile_diffusion]
 
 The models are bench_diffusion's SD1.5-shaped UNet and its ControlNet (random weights, batch 2
 as under classifier-free guidance, text states [2, 77, 768]), jitted as there, in three
@@ -24,7 +24,17 @@ primitive its HLO metadata names (`op_name`, e.g. ".../resnets_0/conv1/dot_gener
 Loops (`while`) are not counted themselves: their bodies' operations are. Seconds are the sum of
 the operations' durations per forward (operations on different threads add up, so the sum can
 exceed the wall time); shares are of that sum. The 10 costliest operations are listed with their
-op_name. Writes experiments/results/<name>.json with the machine and its load.
+op_name.
+
+Under the float32 sampler's compiler options (`sampler.FLOAT32_COMPILER_OPTIONS`, what
+bench_diffusion times) XLA's own matmuls run outside the profiler's view, so a second part,
+"components", breaks the fp32 UNet's forward down bottom-up instead: the forward compiled with
+those options, and each level's Transformer2D block and its self-attention (projections
+included), cross-attention and feed-forward alone at that level's shapes, each with its nominal
+GFLOP and GFLOP/s; the transformers' share is their seconds times their count in the UNet over
+the forward's, and "rest" (resnets, samplers, embeddings) what the forward takes beyond them.
+All are timed round by round (one call of each per round; medians).
+Writes experiments/results/<name>.json with the machine and its load.
 """
 
 from __future__ import annotations
@@ -40,18 +50,21 @@ import time
 from pathlib import Path
 from typing import Any
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.profiler import ProfileData
 
 from signerf_jax import files
-from signerf_jax.diffusion import model_configs, weights
+from signerf_jax.diffusion import model_configs, sampler, weights
+from signerf_jax.diffusion.attention import Attention, GEGLUFeedForward, Transformer2D
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
+from bench_attention import alternate  # pylint: disable=wrong-import-position
 from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -163,23 +176,16 @@ def profile(function, arguments, repeats: int) -> dict[str, Any]:
           for seconds, name, kind, op_name in operations[:10]]}
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--latent_sizes", type=int, nargs="+", default=[32, 64])
-  parser.add_argument("--repeats", type=int, default=3,
-                      help="timed and profiled forwards per model and precision")
-  parser.add_argument("--name", default="profile_diffusion", help="results/<name>.json")
-  args = parser.parse_args()
-  result: dict[str, Any] = {
-      "machine": machine.record(),
-      "repeats": args.repeats, "models": {}}
+def operations_part(sizes: list[int], repeats: int) -> dict[str, Any]:
+  """The profiled breakdown (`profile`) of each model and precision at each latent size."""
+  results = {}
   unet = UNet2DCondition(model_configs.UNetConfig.from_dict(SD15_UNET))
   controlnet = ControlNet(model_configs.ControlNetConfig.from_dict(
       {**{name: value for name, value in SD15_UNET.items() if name != "sample_size"},
        "conditioning_channels": 3}))
   unet_params, controlnet_params = weights.random_params(unet), weights.random_params(controlnet)
   rng = np.random.default_rng(0)
-  for size in args.latent_sizes:
+  for size in sizes:
     sample = jnp.asarray(rng.standard_normal((2, size, size, 4)), jnp.float32)
     timesteps = jnp.full((2,), 500)
     context = jnp.asarray(rng.standard_normal((2, 77, 768)), jnp.float32)
@@ -206,9 +212,105 @@ def main() -> None:
           ("unet_controlnet", controlled_forward,
            (cast((unet_params, controlnet_params)), sample, timesteps, context, image))):
         key = f"{model}_{size}x{size}_{precision}"
-        result["models"][key] = profile(jax.jit(function), arguments, args.repeats)
-        print(key, result["models"][key]["wall_seconds_per_forward"],
-              result["models"][key]["share"], flush=True)
+        results[key] = profile(jax.jit(function), arguments, repeats)
+        print(key, results[key]["wall_seconds_per_forward"], results[key]["share"], flush=True)
+  return results
+
+
+def compiled_forward(module: nn.Module, arguments: tuple[jax.Array, ...]):
+  """A call of `module`'s forward (random parameters) on `arguments`, compiled as the float32
+  sampler is."""
+  params = module.init(jax.random.key(0), *arguments)
+  forward = jax.jit(module.apply, compiler_options=sampler.FLOAT32_COMPILER_OPTIONS).lower(
+      params, *arguments).compile()
+  return lambda _: forward(params, *arguments)
+
+
+def transformers_per_level(config: model_configs.UNetConfig) -> list[int]:
+  """How many Transformer2D blocks the UNet runs at each level (resolution): one per layer of a
+  cross-attention down block, one per layer of an up block (one more layer than down), and one
+  in a cross-attention middle block (at the lowest resolution)."""
+  up_block_types = config.up_block_types[::-1]  # Per level, as the down blocks.
+  last = len(config.block_out_channels) - 1
+  return [layers * config.down_block_types[level].startswith("CrossAttn")
+          + (layers + 1) * up_block_types[level].startswith("CrossAttn")
+          + int(level == last and config.mid_block_type == model_configs.CROSS_ATTENTION_MID)
+          for level, layers in enumerate(config.layers_per_block)]
+
+
+def components_part(sizes: list[int], repeats: int) -> dict[str, Any]:
+  """The bottom-up breakdown of the fp32 UNet's forward (module docstring), batch 2."""
+  config = model_configs.UNetConfig.from_dict(SD15_UNET)
+  text_tokens, text_features = 77, config.cross_attention_dim
+  rng = np.random.default_rng(0)
+  normal = lambda *shape: jnp.asarray(rng.standard_normal(shape), jnp.float32)
+  context = normal(2, text_tokens, text_features)
+  results = {}
+  for size in sizes:
+    calls = {"forward": compiled_forward(UNet2DCondition(config), (
+        normal(2, size, size, 4), jnp.full((2,), 500), context))}
+    counts, gflop = {}, {}
+    for level, (channels, count) in enumerate(zip(config.block_out_channels,
+                                                  transformers_per_level(config))):
+      if not count:
+        continue
+      side, heads = size // 2**level, config.num_attention_heads[level]
+      tokens, head_dim = 2 * side * side, channels // heads
+      x = normal(2, side, side, channels)
+      sequence = x.reshape(2, side * side, channels)
+      level_name = f"level_{level}_{side}x{side}x{channels}"
+      counts[level_name] = count
+      gflop[level_name] = {  # Nominal: matmul multiply-adds x 2.
+          "self_attention": (8 * tokens * channels**2 + 4 * tokens * side * side * channels) / 1e9,
+          "cross_attention": (4 * tokens * channels**2 + 8 * text_tokens * text_features * channels
+                              + 4 * tokens * text_tokens * channels) / 1e9,
+          "feed_forward": 24 * tokens * channels**2 / 1e9}
+      gflop[level_name]["transformer"] = (sum(gflop[level_name].values())
+                                          + 4 * tokens * channels**2 / 1e9)
+      for name, (module, arguments) in {
+          "self_attention": (Attention(heads, head_dim, channels), (sequence,)),
+          "cross_attention": (Attention(heads, head_dim, channels), (sequence, context)),
+          "feed_forward": (GEGLUFeedForward(channels), (sequence,)),
+          "transformer": (Transformer2D(heads, head_dim, 1, config.norm_num_groups, False),
+                          (x, context))}.items():
+        calls[f"{level_name}/{name}"] = compiled_forward(module, arguments)
+    # Round by round, so that a slow spell of a shared machine slows every part alike.
+    seconds = {name: measured["median_seconds"]
+               for name, measured in alternate(calls, "forward", repeats).items()}
+    transformers = sum(count * seconds[f"{level_name}/transformer"]
+                       for level_name, count in counts.items())
+    results[f"unet_{size}x{size}_fp32"] = {
+        "forward_seconds": round(seconds["forward"], 4),
+        "transformers_seconds": round(transformers, 4),
+        "transformers_share": round(transformers / seconds["forward"], 3),
+        "rest_seconds": round(seconds["forward"] - transformers, 4),
+        "levels": {level_name: {
+            "transformers_in_unet": count,
+            **{name: {"seconds": round(seconds[f"{level_name}/{name}"], 5),
+                      "gflop": round(nominal, 2),
+                      "gflops_per_second": round(nominal / seconds[f"{level_name}/{name}"], 1)}
+               for name, nominal in gflop[level_name].items()}}
+                   for level_name, count in counts.items()}}
+    print(size, results[f"unet_{size}x{size}_fp32"], flush=True)
+  return results
+
+
+PARTS = ("operations", "components")
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--latent_sizes", type=int, nargs="+", default=[32, 64])
+  parser.add_argument("--repeats", type=int, default=3,
+                      help="timed and profiled forwards per model and precision")
+  parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
+  parser.add_argument("--name", default="profile_diffusion", help="results/<name>.json")
+  args = parser.parse_args()
+  result: dict[str, Any] = {"machine": machine.record(), "repeats": args.repeats}
+  if "operations" in args.parts:
+    result["models"] = operations_part(args.latent_sizes, args.repeats)
+  if "components" in args.parts:
+    result["components"] = components_part(args.latent_sizes, args.repeats)
   result["machine"]["load_average_at_end"] = os.getloadavg()
   files.write_json(RESULTS / f"{args.name}.json", result)
   print(f"profile_diffusion: results in {RESULTS / args.name}.json")

@@ -6,7 +6,8 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from signerf_jax.diffusion import layers
+from signerf_jax.diffusion import layers, model_configs, weights
+from signerf_jax.diffusion.unet import UNet2DCondition
 
 UNET = "jit(unet_forward)/UNet2DCondition/UNet2DCondition.up_path/up_blocks_1"
 BLOCK = f"{UNET}/attentions_0/transformer_blocks_0"
@@ -61,3 +62,35 @@ def test_a_profiled_forward_is_broken_down_into_shares_that_add_up(experiment):
   assert breakdown["seconds"]["convolution: matmuls"] > 0
   assert sum(breakdown["share"].values()) == pytest.approx(1.0, abs=1e-3)
   assert breakdown["costliest_operations"][0]["seconds"] > 0
+
+
+
+TINY_UNET = dict(block_out_channels=(32, 64), layers_per_block=1, norm_num_groups=8,
+                 cross_attention_dim=16, attention_head_dim=2,
+                 down_block_types=("CrossAttnDownBlock2D",) * 2,
+                 up_block_types=("CrossAttnUpBlock2D",) * 2)
+
+
+@pytest.mark.parametrize("options", [
+    {},
+    {"mid_block_type": None},
+    {"layers_per_block": 2, "down_block_types": ("CrossAttnDownBlock2D", "DownBlock2D"),
+     "up_block_types": ("UpBlock2D", "CrossAttnUpBlock2D")},
+    {"down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
+     "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D")},
+])
+def test_transformers_are_counted_per_level_as_the_unet_builds_them(experiment, options):
+  config = model_configs.UNetConfig.from_dict({**TINY_UNET, **options})
+  params = jax.eval_shape(lambda: weights.random_params(UNet2DCondition(config)))
+  levels = len(config.block_out_channels)
+  built = [0] * levels
+  for block, children in params.items():
+    attentions = sum(name.startswith("attentions_") for name in children)
+    if block.startswith("down_blocks_"):
+      built[int(block.rsplit("_", 1)[1])] += attentions
+    elif block.startswith("up_blocks_"):  # The up path runs from the lowest resolution.
+      built[levels - 1 - int(block.rsplit("_", 1)[1])] += attentions
+    elif block == "mid_block":
+      built[-1] += attentions
+  assert experiment.transformers_per_level(config) == built
+  assert sum(built) > 0
