@@ -255,6 +255,7 @@ def components_part(sizes: list[int], repeats: int) -> dict[str, Any]:
       if not count:
         continue
       side, heads = size // 2**level, config.num_attention_heads[level]
+      layers = config.transformer_layers_per_block[level]  # Blocks of the three parts each.
       tokens, head_dim = 2 * side * side, channels // heads
       x = normal(2, side, side, channels)
       sequence = x.reshape(2, side * side, channels)
@@ -265,13 +266,14 @@ def components_part(sizes: list[int], repeats: int) -> dict[str, Any]:
           "cross_attention": (4 * tokens * channels**2 + 8 * text_tokens * text_features * channels
                               + 4 * tokens * text_tokens * channels) / 1e9,
           "feed_forward": 24 * tokens * channels**2 / 1e9}
-      gflop[level_name]["transformer"] = (sum(gflop[level_name].values())
+      gflop[level_name]["transformer"] = (layers * sum(gflop[level_name].values())
                                           + 4 * tokens * channels**2 / 1e9)
       for name, (module, arguments) in {
           "self_attention": (Attention(heads, head_dim, channels), (sequence,)),
           "cross_attention": (Attention(heads, head_dim, channels), (sequence, context)),
           "feed_forward": (GEGLUFeedForward(channels), (sequence,)),
-          "transformer": (Transformer2D(heads, head_dim, 1, config.norm_num_groups, False),
+          "transformer": (Transformer2D(heads, head_dim, layers, config.norm_num_groups,
+                                        config.use_linear_projection),
                           (x, context))}.items():
         calls[f"{level_name}/{name}"] = compiled_forward(module, arguments)
     # Round by round, so that a slow spell of a shared machine slows every part alike.

@@ -64,7 +64,6 @@ def test_a_profiled_forward_is_broken_down_into_shares_that_add_up(experiment):
   assert breakdown["costliest_operations"][0]["seconds"] > 0
 
 
-
 TINY_UNET = dict(block_out_channels=(32, 64), layers_per_block=1, norm_num_groups=8,
                  cross_attention_dim=16, attention_head_dim=2,
                  down_block_types=("CrossAttnDownBlock2D",) * 2,
