@@ -57,14 +57,14 @@ import numpy as np
 from jax.profiler import ProfileData
 
 from signerf_jax import files
-from signerf_jax.diffusion import model_configs, sampler, weights
+from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.attention import Attention, GEGLUFeedForward, Transformer2D
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
-from bench_attention import alternate  # pylint: disable=wrong-import-position
+from bench_attention import alternate, compiled  # pylint: disable=wrong-import-position
 from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -221,8 +221,7 @@ def compiled_forward(module: nn.Module, arguments: tuple[jax.Array, ...]):
   """A call of `module`'s forward (random parameters) on `arguments`, compiled as the float32
   sampler is."""
   params = module.init(jax.random.key(0), *arguments)
-  forward = jax.jit(module.apply, compiler_options=sampler.FLOAT32_COMPILER_OPTIONS).lower(
-      params, *arguments).compile()
+  forward = compiled(module.apply, (params, *arguments))
   return lambda _: forward(params, *arguments)
 
 
