@@ -1,20 +1,24 @@
-"""Attention over blocks of keys (an online softmax) against each query chunk seeing every key.
+"""XLA's attention over blocks of keys (an online softmax) and the fused CPU kernel against each
+query chunk seeing every key.
 
   python experiments/bench_attention.py [--parts attention unet shipped_sheet] [--repeats 5] \
       [--attention_repeats 15] [--name bench_attention]
 
-`AttentionOptions.key_chunk_size` splits each query chunk's keys into blocks; at least the key
-count (ALL_KEYS) gives the earlier path, every chunk against all keys at once. Three parts; the
+In XLA's ops (`AttentionOptions.cpu_kernel` False) `key_chunk_size` splits each query chunk's
+keys into blocks; at least the key count (ALL_KEYS) gives the earlier path, every chunk against
+all keys at once. The default options run the fused kernel (cpu_attention.py). Three parts; the
 first two time the programs in one process, alternating call by call, each compiled with the
 float32 sampler's options (`sampler.FLOAT32_COMPILER_OPTIONS`):
   attention  one SD 1.5 self-attention at the 64x64 latent's first two UNet levels (batch 2 as
              under classifier-free guidance: [2, 4096, 8, 40] and [2, 1024, 8, 80]) for query
-             chunks of 512 and 1,024 against key blocks of 256 to 2,048 and ALL_KEYS;
-  unet       bench_diffusion's SD 1.5 UNet forward at 32x32 and 64x64 latents, the default
-             options against ALL_KEYS;
+             chunks of 512 and 1,024 against key blocks of 256 to 2,048 and ALL_KEYS, and the
+             kernel;
+  unet       bench_diffusion's SD 1.5 UNet forward at 32x32 and 64x64 latents: the kernel, XLA's
+             default options and ALL_KEYS;
   shipped_sheet  whether the shipped model's 2 x 3 sheet sampler (bench_sampler_options.py's
-             sampling, one sheet and four) lowers to the same program both ways: its attention
-             sees at most 384 keys, fewer than a block, so nothing changes there.
+             sampling, one sheet and four) lowers to the same program with XLA's default options
+             and ALL_KEYS: its attention sees at most 384 keys, fewer than a block, so nothing
+             changes there.
 Each program's calls after a warm-up are recorded with their median, and the median of the
 per-round speed-ups over the ALL_KEYS program (its seconds over the other's), with their range,
 and the largest difference between the programs' outputs. Writes experiments/results/NAME.json
@@ -47,8 +51,9 @@ from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ALL_KEYS = 2**31
-DEFAULT = AttentionOptions()
-EVERY_KEY = dataclasses.replace(DEFAULT, key_chunk_size=ALL_KEYS)
+KERNEL = AttentionOptions()
+XLA = dataclasses.replace(KERNEL, cpu_kernel=False)
+EVERY_KEY = dataclasses.replace(XLA, key_chunk_size=ALL_KEYS)
 # [batch, tokens, heads, head dim] of the SD 1.5 UNet's self-attention at a 64x64 latent.
 ATTENTION_SHAPES = {"sd15_64x64_level_0": (2, 4096, 8, 40), "sd15_64x64_level_1": (2, 1024, 8, 80)}
 QUERY_CHUNKS = (512, 1024)
@@ -56,6 +61,8 @@ KEY_BLOCKS = (256, 512, 1024, 2048, ALL_KEYS)
 
 
 def label(options: AttentionOptions) -> str:
+  if options.cpu_kernel:
+    return "fused CPU kernel"
   keys = "all" if options.key_chunk_size == ALL_KEYS else options.key_chunk_size
   return f"queries {options.query_chunk_size}, keys {keys}"
 
@@ -94,8 +101,8 @@ def attention_part(repeats: int) -> dict[str, Any]:
   for shape_name, shape in ATTENTION_SHAPES.items():
     query, key, value = (jnp.asarray(random.standard_normal(shape), jnp.float32)
                          for _ in range(3))
-    settings = [AttentionOptions(query_chunk_size=chunk, key_chunk_size=block)
-                for chunk in QUERY_CHUNKS for block in KEY_BLOCKS]
+    settings = [dataclasses.replace(XLA, query_chunk_size=chunk, key_chunk_size=block)
+                for chunk in QUERY_CHUNKS for block in KEY_BLOCKS] + [KERNEL]
     programs = {label(options): compiled(
         lambda q, k, v, options=options: dot_product_attention(q, k, v, options),
         (query, key, value)) for options in settings}
@@ -113,7 +120,7 @@ def attention_part(repeats: int) -> dict[str, Any]:
 
 
 def unet_part(repeats: int) -> dict[str, Any]:
-  """The SD 1.5 UNet's forward with the default options and with ALL_KEYS."""
+  """The SD 1.5 UNet's forward with the kernel, XLA's default options and ALL_KEYS."""
   results = {}
   random = np.random.default_rng(0)
   config = model_configs.UNetConfig.from_dict(SD15_UNET)
@@ -123,13 +130,14 @@ def unet_part(repeats: int) -> dict[str, Any]:
                  jnp.full((2,), 500), jnp.asarray(random.standard_normal((2, 77, 768)),
                                                   jnp.float32))
     programs = {}
-    for options in (DEFAULT, EVERY_KEY):
+    for options in (KERNEL, XLA, EVERY_KEY):
       module = UNet2DCondition(config, attention=options)
       programs[label(options)] = compiled(
           lambda p, x, t, c, module=module: module.apply({"params": p}, x, t, c), arguments)
     outputs = [program(*arguments) for program in programs.values()]
     results[f"sd15_unet_{size}x{size}"] = {
-        "max_abs_difference": float(jnp.abs(outputs[0] - outputs[1]).max()),
+        "max_abs_difference": max(float(jnp.abs(output - outputs[-1]).max())
+                                  for output in outputs),
         "programs": alternate({name: lambda _, program=program: program(*arguments)
                                for name, program in programs.items()}, label(EVERY_KEY),
                               repeats)}
@@ -139,11 +147,12 @@ def unet_part(repeats: int) -> dict[str, Any]:
 
 def shipped_sheet_part(repeats: int) -> dict[str, Any]:
   """Whether the shipped model's sheet sampler (bench_sampler_options.py's sampling) lowers to
-  the same program under both options; `repeats` is unused (nothing is timed)."""
+  the same program with XLA's default options and ALL_KEYS; `repeats` is unused (nothing is
+  timed)."""
   del repeats
   results = {}
   loaded = {label(options): pipeline.load_pipeline(DEFAULT_MODEL_DIR, attention=options)
-            for options in (DEFAULT, EVERY_KEY)}
+            for options in (XLA, EVERY_KEY)}
   for batch, winograd in ((1, False), (4, True)):
     programs = []
     for models in loaded.values():
@@ -185,7 +194,7 @@ def main() -> None:
   parser.add_argument("--name", default="bench_attention", help="results/<name>.json")
   args = parser.parse_args()
   result = {"what": __doc__.split("\n\n")[2].replace("\n", " "),
-            "default": dataclasses.asdict(DEFAULT), "machine": machine.record(),
+            "default": dataclasses.asdict(KERNEL), "machine": machine.record(),
             "repeats": args.repeats, "attention_repeats": args.attention_repeats, "parts": {}}
   for part in args.parts:
     result["parts"][part] = PARTS[part](
