@@ -22,7 +22,7 @@ float32 sampler's options (`sampler.FLOAT32_COMPILER_OPTIONS`):
 Each program's calls after a warm-up are recorded with their median, and the median of the
 per-round speed-ups over the ALL_KEYS program (its seconds over the other's), with their range,
 and the largest difference between the programs' outputs. Writes experiments/results/NAME.json
-with the machine and load, and NAME.png: the speed-ups.
+with the machine and load, and NAME.png: the speed-ups (when a part was timed).
 """
 
 from __future__ import annotations
@@ -178,7 +178,9 @@ def write_figure(path: Path, result: dict[str, Any]) -> None:
                        if name != label(EVERY_KEY)]
             for part in result["parts"].values() for workload, found in part.items()
             if "programs" in found}
-  height = 90 + 18 * max((len(rows) for rows in panels.values()), default=1)
+  if not panels:  # Only shipped_sheet ran: nothing was timed.
+    return
+  height = 90 + 18 * max(len(rows) for rows in panels.values())
   plotting.write_panels(path, [plotting.interval_chart(workload, rows,
                                                        "x every key at once", height=height)
                                for workload, rows in panels.items()])
