@@ -72,21 +72,32 @@ def _build(compiler: list[str], cpu: str) -> Path:
   return library
 
 
+def _compiler() -> list[str]:
+  return shlex.split(os.environ.get("CXX", "c++"))
+
+
+def unmet_requirement() -> str | None:
+  """Why this machine cannot build the kernel (not x86-64 Linux, no AVX2/FMA, no compiler), or
+  None where it can try."""
+  cpu = _cpu_description()
+  compiler = _compiler()[0]
+  if platform.system() != "Linux" or platform.machine() != "x86_64" or cpu is None:
+    return f"needs x86-64 Linux, not {platform.system()} {platform.machine()}"
+  if not {"avx2", "fma"} <= set(cpu.split()):
+    return "the CPU lacks AVX2 or FMA"
+  if shutil.which(compiler) is None:
+    return f"no C++ compiler {compiler!r} (set CXX)"
+  return None
+
+
 @functools.cache
 def load() -> bool:
   """Builds (or finds) the kernel and registers it with XLA's CPU backend; False, with one
   warning saying why, where this machine cannot run it."""
-  cpu = _cpu_description()
-  compiler = shlex.split(os.environ.get("CXX", "c++"))
-  if platform.system() != "Linux" or platform.machine() != "x86_64" or cpu is None:
-    reason = f"needs x86-64 Linux, not {platform.system()} {platform.machine()}"
-  elif not {"avx2", "fma"} <= set(cpu.split()):
-    reason = "the CPU lacks AVX2 or FMA"
-  elif shutil.which(compiler[0]) is None:
-    reason = f"no C++ compiler {compiler[0]!r} (set CXX)"
-  else:
+  reason = unmet_requirement()
+  if reason is None:
     try:
-      library = ctypes.cdll.LoadLibrary(str(_build(compiler, cpu)))
+      library = ctypes.cdll.LoadLibrary(str(_build(_compiler(), _cpu_description())))
     except (OSError, RuntimeError) as error:
       reason = str(error)
     else:

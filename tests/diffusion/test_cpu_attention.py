@@ -2,8 +2,6 @@
 magnitudes, batches under vmap, is picked only where it applies, and a failed build is reported."""
 
 import os
-import platform
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -17,10 +15,8 @@ from signerf_jax.diffusion import cpu_attention
 from signerf_jax.diffusion.attention import AttentionOptions, dot_product_attention
 from tests.diffusion.test_attention import random_qkv, reference_attention
 
-BUILDS_HERE = (platform.system() == "Linux" and platform.machine() == "x86_64"
-               and {"avx2", "fma"} <= set(cpu_attention._cpu_description().split())  # pylint: disable=protected-access
-               and shutil.which(os.environ.get("CXX", "c++")) is not None)
-pytestmark = pytest.mark.skipif(not BUILDS_HERE, reason="needs x86-64 Linux, AVX2/FMA, a C++ compiler")
+pytestmark = pytest.mark.skipif(cpu_attention.unmet_requirement() is not None,
+                                reason=str(cpu_attention.unmet_requirement()))
 kernel = jax.jit(cpu_attention.attention)
 
 
