@@ -5,7 +5,8 @@ as under classifier-free guidance, text states (2, 77, 768)) at each latent size
 forward of our jitted model and of diffusers (torch, `threads` threads), their ratio
 `jax_over_torch`, compile time, FLOPs (counted by torch's FlopCounterMode on the reference
 forward) and achieved GFLOP/s against the CPU's fp32 peak as this run measures it (the best
-GFLOP/s of large jitted fp32 matmuls, before and after the models, same threads), XLA's memory
+GFLOP/s of large jitted fp32 matmuls, same threads: before and after the models, and at the start
+of each timing round, which follows the machine's drift within the run), XLA's memory
 plan, the largest output difference from torch (both run the same random weights, converted
 through our loader's name and layout mapping), and the bf16-compute option's speed and error
 (with the weights stored in bf16). Our forwards are compiled as the sampler compiles them
@@ -96,18 +97,21 @@ def flax_params(module, torch_model):
   return weights.params_from_tensors(module, tensors, type(torch_model).__name__)
 
 
-def matmul_gflops_per_second(size: int = PEAK_MATMUL_SIZE, repeats: int = PEAK_REPEATS
-                             ) -> float:
-  """The best GFLOP/s of a jitted [size, size] fp32 matmul: the peak a dense kernel reaches on
-  this machine with the threads XLA uses (a 2048^3 matmul reached 81% of an AVX-512 FMA loop's
-  233 GFLOP/s here: ../shared/notes/cpu-performance.md)."""
+def peak_meter(size: int = PEAK_MATMUL_SIZE, repeats: int = PEAK_REPEATS):
+  """A function returning the best GFLOP/s of `repeats` jitted [size, size] fp32 matmuls (compiled
+  once): the peak a dense kernel reaches on this machine with the threads XLA uses, now (a
+  2048^3 matmul reached 81% of an AVX-512 FMA loop's 233 GFLOP/s here:
+  ../shared/notes/cpu-performance.md)."""
   keys = jax.random.split(jax.random.PRNGKey(0))
   left, right = (jax.random.normal(key, (size, size), jnp.float32) for key in keys)
   multiply = jax.jit(jnp.matmul).lower(left, right).compile()
   jax.block_until_ready(multiply(left, right))
-  best = min(seconds(lambda: jax.block_until_ready(multiply(left, right)))
-             for _ in range(repeats))
-  return 2 * size**3 / 1e9 / best
+
+  def measure() -> float:
+    best = min(seconds(lambda: jax.block_until_ready(multiply(left, right)))
+               for _ in range(repeats))
+    return 2 * size**3 / 1e9 / best
+  return measure
 
 
 def reference_flops(forward) -> float:
@@ -125,10 +129,12 @@ def memory_plan(compiled) -> dict[str, int]:
           "outputs_bytes": int(analysis.output_size_in_bytes)}
 
 
-def time_side_by_side(forwards: dict, repeats: int) -> dict[str, list[float]]:
-  """Wall and process-CPU seconds of each named forward, the forwards alternating."""
-  times = {}
+def time_side_by_side(forwards: dict, repeats: int, measure_peak) -> dict[str, list[float]]:
+  """Wall and process-CPU seconds of each named forward, the forwards alternating, and the peak
+  GFLOP/s measured at the start of each round (`peak_gflops_per_second_all`)."""
+  times = {"peak_gflops_per_second_all": []}
   for _ in range(repeats):
+    times["peak_gflops_per_second_all"].append(measure_peak())
     for name, forward in forwards.items():
       wall, cpu = wall_and_cpu_seconds(forward)
       times.setdefault(f"{name}_seconds_all", []).append(wall)
@@ -137,9 +143,10 @@ def time_side_by_side(forwards: dict, repeats: int) -> dict[str, list[float]]:
 
 
 def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, repeats,
-            peak_gflops: float, bf16_function=None) -> dict:
+            peak_gflops: float, measure_peak, bf16_function=None) -> dict:
   """Compiles as the sampler compiles (`sampler.program`), checks agreement, times JAX against
-  torch, interleaved with the fp32 program under XLA's default options and the bf16 variant."""
+  torch, interleaved with the fp32 program under XLA's default options, the bf16 variant and a
+  peak reading per round."""
   start = time.perf_counter()
   compiled = jax_function.lower(*jax_args).compile(
       compiler_options=sampler.FLOAT32_COMPILER_OPTIONS)
@@ -160,8 +167,9 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
     bf16 = bf16_function.lower(*bf16_args).compile()
     bf16_output = np.asarray(bf16(*bf16_args))
     forwards["bf16"] = lambda: jax.block_until_ready(bf16(*bf16_args))
-  times = time_side_by_side(forwards, repeats)
+  times = time_side_by_side(forwards, repeats, measure_peak)
   median = {key: statistics.median(times[f"{key}_seconds_all"]) for key in forwards}
+  round_peaks = times.pop("peak_gflops_per_second_all")
   result = {
       "jax_seconds": median["jax"], "torch_seconds": median["torch"],
       "jax_over_torch": median["jax"] / median["torch"],
@@ -171,6 +179,11 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
       "jax_gflops_per_second": flops / 1e9 / median["jax"],
       "torch_gflops_per_second": flops / 1e9 / median["torch"],
       "jax_fraction_of_measured_peak": flops / 1e9 / median["jax"] / peak_gflops,
+      # The same against the peak read just before each JAX forward: the machine's speed
+      # drifts (other tenants) within a run, and this reading follows it.
+      "jax_fraction_of_round_peak": statistics.median(
+          flops / 1e9 / wall / peak for wall, peak in zip(times["jax_seconds_all"], round_peaks)),
+      "round_peaks_gflops_per_second": round_peaks,
       "jax_memory_plan": memory_plan(compiled),
       "max_abs_difference_from_torch": difference,
       "output_abs_max": float(np.abs(torch_output).max()),
@@ -242,7 +255,8 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
     return jax.jit(forward)
 
   results = {}
-  peaks = [matmul_gflops_per_second()]
+  measure_peak = peak_meter()
+  peaks = [measure_peak()]
   generator = torch.Generator().manual_seed(seed)
   for size in latent_sizes:
     sample = torch.randn(batch, 4, size, size, generator=generator)
@@ -260,7 +274,7 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
         results[f"unet_{size}x{size}"] = compare(
             f"unet {size}x{size}", unet_function(unet), (unet_params,) + jax_inputs,
             torch.no_grad()(torch_forward), torch_output, flops, repeats, peaks[0],
-            unet_function(unet_bf16) if bf16 else None)
+            measure_peak, unet_function(unet_bf16) if bf16 else None)
 
     if "unet_controlnet" in models:
       def torch_controlled():
@@ -274,11 +288,12 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
             f"unet+controlnet {size}x{size}", controlled_function(unet, controlnet),
             ((unet_params, controlnet_params),) + jax_inputs + (nhwc(image),),
             torch.no_grad()(torch_controlled), torch_output, flops, repeats, peaks[0],
-            controlled_function(unet_bf16, controlnet_bf16) if bf16 else None)
-  peaks.append(matmul_gflops_per_second())
+            measure_peak, controlled_function(unet_bf16, controlnet_bf16) if bf16 else None)
+  peaks.append(measure_peak())
   results["measured_peak"] = {
       "matmul_size": PEAK_MATMUL_SIZE, "gflops_per_second_before_after": peaks,
-      "note": "the fractions use the 'before' figure; 'after' shows whether the load changed"}
+      "note": "jax_fraction_of_measured_peak uses the 'before' figure, "
+              "jax_fraction_of_round_peak the reading at the start of each round"}
   results["attention_options"] = dataclasses.asdict(attention)
   results["threads"] = threads
   return results

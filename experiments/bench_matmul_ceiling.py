@@ -33,8 +33,7 @@ import numpy as np
 from jax import lax
 
 import machine
-from bench_diffusion import (SD15_UNET, hide_unloadable_torchvision, matmul_gflops_per_second,
-                             reference_flops)
+from bench_diffusion import SD15_UNET, hide_unloadable_torchvision, peak_meter, reference_flops
 from signerf_jax import files
 from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.unet import UNet2DCondition
@@ -199,13 +198,14 @@ def main() -> None:
   import torch  # pylint: disable=g-import-not-at-top
   torch.set_num_threads(2)
   torch_unet = diffusers.UNet2DConditionModel(**SD15_UNET).eval()
+  measure_peak = peak_meter()
   record = {"what": " ".join(__doc__.split("\n\n")[2].split()), "machine": machine.record(),
-            "peak_gflops_per_second_before_after": [matmul_gflops_per_second()]}
+            "peak_gflops_per_second_before_after": [measure_peak()]}
   unet = UNet2DCondition(model_configs.UNetConfig.from_dict(SD15_UNET))
   params = weights.random_params(unet)
   for size in args.latent_sizes:
     record[f"unet_{size}x{size}"] = measure(unet, params, torch_unet, size, args.repeats)
-  record["peak_gflops_per_second_before_after"].append(matmul_gflops_per_second())
+  record["peak_gflops_per_second_before_after"].append(measure_peak())
   # The 2048^3 matmul reads 130-170 GFLOP/s on this shared host from one minute to the next: the
   # higher reading is the nearer to what the CPU can do.
   peak = max(record["peak_gflops_per_second_before_after"])

@@ -35,26 +35,26 @@ namespace {
 constexpr int kRows = 6;            // Micro-tile rows: keys of the scores, channels of the output.
 constexpr int kQueryBlock = 64;     // Queries per block: four micro-tiles of 16 columns.
 constexpr int kKeyBlock = 96;       // Keys per block (a multiple of kRows): 24 KB of scores.
-constexpr int64_t kQuerySpan = 512; // Queries per task of the thread pool.
+constexpr int kTasksPerThread = 8;  // Tasks per pool thread, where the queries allow.
 constexpr int kMaxHeadDim = 160;    // Kept in step with cpu_attention.py's MAX_HEAD_DIM.
+constexpr float kLog2E = 1.44269504088896341f;  // Base-2 scores: exp(s) = 2^(s log2(e)).
 
-// exp(x) for x <= 0 (scores minus their running maximum), within 2 ulp: 2^n p(r) with
-// r = x - n ln 2 in [-ln2/2, ln2/2] (ln 2 split in two for an exact reduction) and Cephes'
-// degree-7 polynomial. Below -87 it returns exp(-87) ~ 1.6e-38 instead of a smaller number (or 0):
-// negligible beside the row's largest weight, exp(0) = 1.
-inline __m256 exp_non_positive(__m256 x) {
-  x = _mm256_max_ps(x, _mm256_set1_ps(-87.0f));
-  const __m256 n = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
-                                   _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-  __m256 r = _mm256_fnmadd_ps(n, _mm256_set1_ps(0.693359375f), x);
-  r = _mm256_fnmadd_ps(n, _mm256_set1_ps(-2.12194440e-4f), r);
-  __m256 p = _mm256_set1_ps(1.9875691500e-4f);
-  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.3981999507e-3f));
-  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(8.3334519073e-3f));
-  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(4.1665795894e-2f));
-  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.6666665459e-1f));
-  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(5.0000001201e-1f));
-  p = _mm256_fmadd_ps(p, _mm256_mul_ps(r, r), _mm256_add_ps(r, _mm256_set1_ps(1.0f)));
+// 2^x for x <= 0 (base-2 scores minus their running maximum), within 1 ulp: 2^n p(r) with
+// n = round(x) and r = x - n in [-1/2, 1/2] (exact), p a degree-6 polynomial fitted to 2^r
+// (relative error 2e-9 before float32 rounding). Base 2 -- the packed queries carry the factor
+// log2(e) -- spares exp's range reduction by ln 2. Below -126 it returns 2^-126 ~ 1.2e-38 instead
+// of a smaller number (or 0): negligible beside the row's largest weight, 2^0 = 1.
+inline __m256 exp2_non_positive(__m256 x) {
+  x = _mm256_max_ps(x, _mm256_set1_ps(-126.0f));
+  const __m256 n = _mm256_round_ps(x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  const __m256 r = _mm256_sub_ps(x, n);
+  __m256 p = _mm256_set1_ps(1.5346250439e-4f);
+  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.3399935560e-3f));
+  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(9.6184872091e-3f));
+  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(5.5503286421e-2f));
+  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(2.4022646248e-1f));
+  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(6.9314718246e-1f));
+  p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.0f));
   const __m256i two_to_n = _mm256_slli_epi32(
       _mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23);
   return _mm256_mul_ps(p, _mm256_castsi256_ps(two_to_n));
@@ -94,32 +94,44 @@ struct Problem {
 };
 
 // Softmax over one key block of scores^T [keys x kQueryBlock] (rows >= `keys` are padding): the
-// scores become weights exp(score - new maximum), and the running maxima, sums and out^T rescale.
+// base-2 scores become weights 2^(score - new maximum), and the running maxima, sums and out^T
+// rescale. Two 8-query columns at a time: two independent chains of maxima and sums to overlap.
 void softmax_block(float* scores, int keys, int padded_keys, int head_dim, float* running_max,
                    float* running_sum, float* out) {
-  for (int c = 0; c < kQueryBlock; c += 8) {
-    __m256 maximum = _mm256_loadu_ps(running_max + c);
+  constexpr int kLanes = 2;
+  for (int c = 0; c < kQueryBlock; c += 8 * kLanes) {
+    __m256 maximum[kLanes], rescale[kLanes], sum[kLanes];
+    for (int l = 0; l < kLanes; ++l) maximum[l] = _mm256_loadu_ps(running_max + c + 8 * l);
     for (int j = 0; j < keys; ++j)
-      maximum = _mm256_max_ps(maximum, _mm256_loadu_ps(scores + j * kQueryBlock + c));
-    // 0 (up to the exp(-87) floor, times the zero sums) at the first block: the maximum starts
-    // at -inf.
-    const __m256 rescale = exp_non_positive(_mm256_sub_ps(_mm256_loadu_ps(running_max + c),
-                                                          maximum));
-    __m256 sum = _mm256_setzero_ps();
-    for (int j = 0; j < keys; ++j) {
-      const __m256 weight = exp_non_positive(
-          _mm256_sub_ps(_mm256_loadu_ps(scores + j * kQueryBlock + c), maximum));
-      _mm256_storeu_ps(scores + j * kQueryBlock + c, weight);
-      sum = _mm256_add_ps(sum, weight);
+      for (int l = 0; l < kLanes; ++l)
+        maximum[l] =
+            _mm256_max_ps(maximum[l], _mm256_loadu_ps(scores + j * kQueryBlock + c + 8 * l));
+    for (int l = 0; l < kLanes; ++l) {
+      // 0 (up to the 2^-126 floor, times the zero sums) at the first block: the maximum starts
+      // at -inf.
+      rescale[l] = exp2_non_positive(
+          _mm256_sub_ps(_mm256_loadu_ps(running_max + c + 8 * l), maximum[l]));
+      sum[l] = _mm256_setzero_ps();
     }
+    for (int j = 0; j < keys; ++j)
+      for (int l = 0; l < kLanes; ++l) {
+        float* score = scores + j * kQueryBlock + c + 8 * l;
+        const __m256 weight = exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(score), maximum[l]));
+        _mm256_storeu_ps(score, weight);
+        sum[l] = _mm256_add_ps(sum[l], weight);
+      }
     for (int j = keys; j < padded_keys; ++j)
-      _mm256_storeu_ps(scores + j * kQueryBlock + c, _mm256_setzero_ps());
-    _mm256_storeu_ps(running_sum + c, _mm256_fmadd_ps(_mm256_loadu_ps(running_sum + c), rescale,
-                                                      sum));
-    _mm256_storeu_ps(running_max + c, maximum);
-    for (int d = 0; d < head_dim; ++d)
-      _mm256_storeu_ps(out + d * kQueryBlock + c,
-                       _mm256_mul_ps(rescale, _mm256_loadu_ps(out + d * kQueryBlock + c)));
+      for (int l = 0; l < kLanes; ++l)
+        _mm256_storeu_ps(scores + j * kQueryBlock + c + 8 * l, _mm256_setzero_ps());
+    for (int l = 0; l < kLanes; ++l) {
+      const int at = c + 8 * l;
+      _mm256_storeu_ps(running_sum + at,
+                       _mm256_fmadd_ps(_mm256_loadu_ps(running_sum + at), rescale[l], sum[l]));
+      _mm256_storeu_ps(running_max + at, maximum[l]);
+      for (int d = 0; d < head_dim; ++d)
+        _mm256_storeu_ps(out + d * kQueryBlock + at,
+                         _mm256_mul_ps(rescale[l], _mm256_loadu_ps(out + d * kQueryBlock + at)));
+    }
   }
 }
 
@@ -144,7 +156,7 @@ void attend_span(const Problem& problem, int64_t batch, int64_t head, int64_t be
     for (int i = 0; i < count; ++i) {
       const float* query =
           problem.query + (batch * problem.queries + first + i) * token_stride + head * head_dim;
-      for (int d = 0; d < head_dim; ++d) queries_t[d * kQueryBlock + i] = query[d];
+      for (int d = 0; d < head_dim; ++d) queries_t[d * kQueryBlock + i] = query[d] * kLog2E;
     }
     std::fill(out_t.begin(), out_t.end(), 0.0f);
     std::fill(running_max.begin(), running_max.end(), -INFINITY);
@@ -189,7 +201,7 @@ void attend_span(const Problem& problem, int64_t batch, int64_t head, int64_t be
 // the caller has finished every task and returned, must still find it.
 struct SharedWork {
   Problem problem;
-  int64_t spans, tasks;
+  int64_t spans, span_length, tasks;
   std::atomic<int64_t> next_task{0}, tasks_done{0};
   std::mutex mutex;
   std::condition_variable all_done;
@@ -199,7 +211,8 @@ void take_tasks(SharedWork& work) {
   for (int64_t task; (task = work.next_task.fetch_add(1)) < work.tasks;) {
     const int64_t span = task % work.spans, pair = task / work.spans;
     attend_span(work.problem, pair / work.problem.heads, pair % work.problem.heads,
-                span * kQuerySpan, std::min(work.problem.queries, (span + 1) * kQuerySpan));
+                span * work.span_length,
+                std::min(work.problem.queries, (span + 1) * work.span_length));
     if (work.tasks_done.fetch_add(1) + 1 == work.tasks) {
       std::lock_guard<std::mutex> lock(work.mutex);
       work.all_done.notify_all();
@@ -224,8 +237,17 @@ ffi::Error Attention(ffi::ThreadPool pool, ffi::AnyBuffer query, ffi::AnyBuffer 
     return ffi::Error::InvalidArgument("head size must be a multiple of 8 up to 160");
   auto work = std::make_shared<SharedWork>();
   work->problem = problem;
-  work->spans = (problem.queries + kQuerySpan - 1) / kQuerySpan;
-  work->tasks = problem.batch * problem.heads * work->spans;
+  // Tasks are spans of one (batch, head) pair's queries. Each packs its head's keys and values,
+  // so the fewer and longer the spans the less is copied (512-query spans cost ~5% at 4,096
+  // tokens); kTasksPerThread tasks per thread still share the work out evenly.
+  const int64_t pairs = problem.batch * problem.heads;
+  const int64_t blocks = std::max<int64_t>((problem.queries + kQueryBlock - 1) / kQueryBlock, 1);
+  const int64_t threads = std::max<int64_t>(pool.num_threads(), 1);
+  const int64_t wanted_spans =
+      std::clamp<int64_t>(kTasksPerThread * threads / std::max<int64_t>(pairs, 1), 1, blocks);
+  work->span_length = (blocks + wanted_spans - 1) / wanted_spans * kQueryBlock;
+  work->spans = std::max<int64_t>((problem.queries + work->span_length - 1) / work->span_length, 1);
+  work->tasks = pairs * work->spans;
   // The caller takes tasks too and waits only for tasks some thread has taken, never for a
   // helper to start: XLA may run several of these calls at once on its pool, each occupying a
   // pool thread, and waiting for a helper queued behind them would deadlock.

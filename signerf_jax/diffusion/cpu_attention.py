@@ -20,6 +20,7 @@ import platform
 import shlex
 import shutil
 import subprocess
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -53,23 +54,32 @@ def cache_directory() -> Path:
   return Path(os.environ.get("SIGNERF_JAX_CACHE", Path.home() / ".cache" / "signerf_jax"))
 
 
-def _build(compiler: list[str], cpu: str) -> Path:
-  """The kernel's shared library, compiled now unless the cache holds it. Written to a temporary
-  file beside its final name and renamed (files.atomic_path), so concurrent builds (test workers)
-  never load half a file. Raises RuntimeError with the compiler's output when the compile
-  fails."""
-  key = hashlib.sha256("\0".join([SOURCE.read_text(), jaxlib.__version__, *compiler,
-                                  *COMPILE_FLAGS, cpu]).encode()).hexdigest()[:16]
+def build(source: str, compiler: Sequence[str] | None = None, cpu: str | None = None) -> Path:
+  """A shared library of kernel `source` (the text of a cpu_attention.cc), compiled now unless the
+  cache holds it, with `compiler` (default `$CXX`, else `c++`) for `cpu` (default this machine's
+  /proc/cpuinfo lines; both are part of the cache key). Written to a temporary file beside its
+  final name and renamed (files.atomic_path), so concurrent builds (test workers) never load half
+  a file. Raises RuntimeError with the compiler's output when the compile fails."""
+  compiler = list(compiler or _compiler())
+  cpu = _cpu_description() if cpu is None else cpu
+  key = hashlib.sha256("\0".join([source, jaxlib.__version__, *compiler, *COMPILE_FLAGS,
+                                  str(cpu)]).encode()).hexdigest()[:16]
   library = cache_directory() / f"cpu_attention-{key}.so"
   if library.exists():
     return library
   with files.atomic_path(library) as temporary:
-    command = [*compiler, *COMPILE_FLAGS, f"-I{jax.ffi.include_dir()}", str(SOURCE),
+    command = [*compiler, *COMPILE_FLAGS, f"-I{jax.ffi.include_dir()}", "-x", "c++", "-",
                "-o", str(temporary)]
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    done = subprocess.run(command, input=source, capture_output=True, text=True, check=False)
     if done.returncode != 0:
       raise RuntimeError(f"{shlex.join(command)} failed:\n{done.stderr[-2000:]}")
   return library
+
+
+def register(library: Path, target_name: str = TARGET_NAME) -> None:
+  """Loads a built `library` and registers its handler with XLA's CPU backend as `target_name`."""
+  handler = ctypes.cdll.LoadLibrary(str(library)).SignerfCpuAttention
+  jax.ffi.register_ffi_target(target_name, jax.ffi.pycapsule(handler), platform="cpu")
 
 
 def _compiler() -> list[str]:
@@ -97,12 +107,10 @@ def load() -> bool:
   reason = unmet_requirement()
   if reason is None:
     try:
-      library = ctypes.cdll.LoadLibrary(str(_build(_compiler(), _cpu_description())))
+      register(build(SOURCE.read_text()))
     except (OSError, RuntimeError) as error:
       reason = str(error)
     else:
-      jax.ffi.register_ffi_target(TARGET_NAME, jax.ffi.pycapsule(library.SignerfCpuAttention),
-                                  platform="cpu")
       return True
   logging.warning("signerf_jax: the fused CPU attention kernel is off (%s); attention runs "
                   "through XLA's ops", reason)

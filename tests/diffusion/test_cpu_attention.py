@@ -45,7 +45,7 @@ def test_builds_and_registers_on_this_machine():
 @pytest.mark.parametrize("query_tokens, key_tokens", [(1, 1), (63, 95), (65, 97), (513, 300)])
 def test_matches_softmax_attention(head_dim, query_tokens, key_tokens):
   """Head sizes with output remainders of 0, 2 and 4 rows (of 6); token counts one short of and
-  one over the 64-query / 96-key blocks and over the 512-query span of a thread-pool task."""
+  one over the 64-query / 96-key blocks, and queries split into several thread-pool tasks."""
   assert_within_float32_rounding(*random_qkv(query_tokens, key_tokens, heads=2, head_dim=head_dim))
 
 
@@ -133,16 +133,17 @@ def test_kernel_rejects_a_head_size_it_cannot_take():
 def test_a_failed_build_names_the_command_and_leaves_no_file(tmp_path, monkeypatch):
   monkeypatch.setenv("SIGNERF_JAX_CACHE", str(tmp_path))
   with pytest.raises(RuntimeError, match="false"):
-    cpu_attention._build(["false"], "cpu")  # pylint: disable=protected-access
+    cpu_attention.build(cpu_attention.SOURCE.read_text(), ["false"], "cpu")
   assert not list(tmp_path.iterdir())
 
 
-def test_a_build_is_cached_under_a_key_of_source_compiler_and_cpu(tmp_path, monkeypatch):
+def test_a_build_is_cached_under_a_key_of_source_and_cpu(tmp_path, monkeypatch):
   monkeypatch.setenv("SIGNERF_JAX_CACHE", str(tmp_path))
-  compiler = [os.environ.get("CXX", "c++")]
-  library = cpu_attention._build(compiler, "cpu A")  # pylint: disable=protected-access
+  source = cpu_attention.SOURCE.read_text()
+  library = cpu_attention.build(source, cpu="cpu A")
   built = library.stat().st_mtime_ns
-  assert cpu_attention._build(compiler, "cpu A") == library  # pylint: disable=protected-access
+  assert cpu_attention.build(source, cpu="cpu A") == library
   assert library.stat().st_mtime_ns == built
-  assert cpu_attention._build(compiler, "cpu B") != library  # pylint: disable=protected-access
-  assert sorted(path.suffix for path in tmp_path.iterdir()) == [".so", ".so"]
+  assert cpu_attention.build(source, cpu="cpu B") != library
+  assert cpu_attention.build(source + "\n// another source", cpu="cpu A") != library
+  assert sorted(path.suffix for path in tmp_path.iterdir()) == [".so"] * 3
