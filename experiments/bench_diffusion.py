@@ -34,6 +34,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import gin
 import jax
@@ -97,7 +98,8 @@ def flax_params(module, torch_model):
   return weights.params_from_tensors(module, tensors, type(torch_model).__name__)
 
 
-def peak_meter(size: int = PEAK_MATMUL_SIZE, repeats: int = PEAK_REPEATS):
+def peak_meter(size: int = PEAK_MATMUL_SIZE, repeats: int = PEAK_REPEATS
+               ) -> Callable[[], float]:
   """A function returning the best GFLOP/s of `repeats` jitted [size, size] fp32 matmuls (compiled
   once): the peak a dense kernel reaches on this machine with the threads XLA uses, now (a
   2048^3 matmul reached 81% of an AVX-512 FMA loop's 233 GFLOP/s here:
@@ -129,7 +131,8 @@ def memory_plan(compiled) -> dict[str, int]:
           "outputs_bytes": int(analysis.output_size_in_bytes)}
 
 
-def time_side_by_side(forwards: dict, repeats: int, measure_peak) -> dict[str, list[float]]:
+def time_side_by_side(forwards: dict, repeats: int,
+                      measure_peak: Callable[[], float]) -> dict[str, list[float]]:
   """Wall and process-CPU seconds of each named forward, the forwards alternating, and the peak
   GFLOP/s measured at the start of each round (`peak_gflops_per_second_all`)."""
   times = {"peak_gflops_per_second_all": []}
@@ -143,7 +146,7 @@ def time_side_by_side(forwards: dict, repeats: int, measure_peak) -> dict[str, l
 
 
 def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, repeats,
-            peak_gflops: float, measure_peak, bf16_function=None) -> dict:
+            peak_gflops: float, measure_peak: Callable[[], float], bf16_function=None) -> dict:
   """Compiles as the sampler compiles (`sampler.program`), checks agreement, times JAX against
   torch, interleaved with the fp32 program under XLA's default options, the bf16 variant and a
   peak reading per round."""
@@ -179,8 +182,9 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
       "jax_gflops_per_second": flops / 1e9 / median["jax"],
       "torch_gflops_per_second": flops / 1e9 / median["torch"],
       "jax_fraction_of_measured_peak": flops / 1e9 / median["jax"] / peak_gflops,
-      # The same against the peak read just before each JAX forward: the machine's speed
-      # drifts (other tenants) within a run, and this reading follows it.
+      # The same against the peak read just before each JAX forward, which follows the
+      # machine's speed through the run (a shared host's 2,048^2 matmul read 93-155 GFLOP/s
+      # from one round to the next).
       "jax_fraction_of_round_peak": statistics.median(
           flops / 1e9 / wall / peak for wall, peak in zip(times["jax_seconds_all"], round_peaks)),
       "round_peaks_gflops_per_second": round_peaks,
