@@ -93,45 +93,56 @@ struct Problem {
   int64_t batch, queries, keys, heads, head_dim;
 };
 
+// The end of a key block for 8 queries' columns: their running sums and maxima updated, and their
+// out^T columns rescaled to the new maxima.
+inline void update_running(__m256 maximum, __m256 rescale, __m256 sum, int head_dim,
+                           float* running_max, float* running_sum, float* out) {
+  _mm256_storeu_ps(running_sum, _mm256_fmadd_ps(_mm256_loadu_ps(running_sum), rescale, sum));
+  _mm256_storeu_ps(running_max, maximum);
+  for (int d = 0; d < head_dim; ++d)
+    _mm256_storeu_ps(out + d * kQueryBlock,
+                     _mm256_mul_ps(rescale, _mm256_loadu_ps(out + d * kQueryBlock)));
+}
+
 // Softmax over one key block of scores^T [keys x kQueryBlock] (rows >= `keys` are padding): the
 // base-2 scores become weights 2^(score - new maximum), and the running maxima, sums and out^T
-// rescale. Two 8-query columns at a time: two independent chains of maxima and sums to overlap.
+// rescale. Two 8-query columns (a and b) at a time: two independent chains of maxima and sums to
+// overlap, each in its own variable so that the compiler keeps it in a register.
 void softmax_block(float* scores, int keys, int padded_keys, int head_dim, float* running_max,
                    float* running_sum, float* out) {
-  constexpr int kLanes = 2;
-  for (int c = 0; c < kQueryBlock; c += 8 * kLanes) {
-    __m256 maximum[kLanes], rescale[kLanes], sum[kLanes];
-    for (int l = 0; l < kLanes; ++l) maximum[l] = _mm256_loadu_ps(running_max + c + 8 * l);
-    for (int j = 0; j < keys; ++j)
-      for (int l = 0; l < kLanes; ++l)
-        maximum[l] =
-            _mm256_max_ps(maximum[l], _mm256_loadu_ps(scores + j * kQueryBlock + c + 8 * l));
-    for (int l = 0; l < kLanes; ++l) {
-      // 0 (up to the 2^-126 floor, times the zero sums) at the first block: the maximum starts
-      // at -inf.
-      rescale[l] = exp2_non_positive(
-          _mm256_sub_ps(_mm256_loadu_ps(running_max + c + 8 * l), maximum[l]));
-      sum[l] = _mm256_setzero_ps();
+  for (int c = 0; c < kQueryBlock; c += 16) {
+    float* column = scores + c;
+    __m256 maximum_a = _mm256_loadu_ps(running_max + c);
+    __m256 maximum_b = _mm256_loadu_ps(running_max + c + 8);
+    for (int j = 0; j < keys; ++j) {
+      maximum_a = _mm256_max_ps(maximum_a, _mm256_loadu_ps(column + j * kQueryBlock));
+      maximum_b = _mm256_max_ps(maximum_b, _mm256_loadu_ps(column + j * kQueryBlock + 8));
     }
-    for (int j = 0; j < keys; ++j)
-      for (int l = 0; l < kLanes; ++l) {
-        float* score = scores + j * kQueryBlock + c + 8 * l;
-        const __m256 weight = exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(score), maximum[l]));
-        _mm256_storeu_ps(score, weight);
-        sum[l] = _mm256_add_ps(sum[l], weight);
-      }
-    for (int j = keys; j < padded_keys; ++j)
-      for (int l = 0; l < kLanes; ++l)
-        _mm256_storeu_ps(scores + j * kQueryBlock + c + 8 * l, _mm256_setzero_ps());
-    for (int l = 0; l < kLanes; ++l) {
-      const int at = c + 8 * l;
-      _mm256_storeu_ps(running_sum + at,
-                       _mm256_fmadd_ps(_mm256_loadu_ps(running_sum + at), rescale[l], sum[l]));
-      _mm256_storeu_ps(running_max + at, maximum[l]);
-      for (int d = 0; d < head_dim; ++d)
-        _mm256_storeu_ps(out + d * kQueryBlock + at,
-                         _mm256_mul_ps(rescale[l], _mm256_loadu_ps(out + d * kQueryBlock + at)));
+    // 0 (up to the 2^-126 floor, times the zero sums) at the first block: the maxima start at
+    // -inf.
+    const __m256 rescale_a =
+        exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(running_max + c), maximum_a));
+    const __m256 rescale_b =
+        exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(running_max + c + 8), maximum_b));
+    __m256 sum_a = _mm256_setzero_ps(), sum_b = _mm256_setzero_ps();
+    for (int j = 0; j < keys; ++j) {
+      float* row = column + j * kQueryBlock;
+      const __m256 weight_a = exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(row), maximum_a));
+      const __m256 weight_b =
+          exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(row + 8), maximum_b));
+      _mm256_storeu_ps(row, weight_a);
+      _mm256_storeu_ps(row + 8, weight_b);
+      sum_a = _mm256_add_ps(sum_a, weight_a);
+      sum_b = _mm256_add_ps(sum_b, weight_b);
     }
+    for (int j = keys; j < padded_keys; ++j) {
+      _mm256_storeu_ps(column + j * kQueryBlock, _mm256_setzero_ps());
+      _mm256_storeu_ps(column + j * kQueryBlock + 8, _mm256_setzero_ps());
+    }
+    update_running(maximum_a, rescale_a, sum_a, head_dim, running_max + c, running_sum + c,
+                   out + c);
+    update_running(maximum_b, rescale_b, sum_b, head_dim, running_max + c + 8,
+                   running_sum + c + 8, out + c + 8);
   }
 }
 
