@@ -32,7 +32,7 @@ from signerf_jax.diffusion import cpu_attention
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REPOSITORY = Path(__file__).resolve().parent.parent
-KERNEL_PATH = "signerf_jax/diffusion/cpu_attention.cc"
+KERNEL_PATH = "signerf_jax/diffusion/cpu_attention.cc"  # In this checkout, as git names it.
 
 
 def git(*arguments: str) -> str:
@@ -43,11 +43,12 @@ def git(*arguments: str) -> str:
 def revision_source(revision: str) -> str:
   """The kernel's source at a git `revision`, or as it is now for "worktree"."""
   if revision == "worktree":
-    return cpu_attention.SOURCE.read_text()
+    return (REPOSITORY / KERNEL_PATH).read_text()
   return git("show", f"{revision}:{KERNEL_PATH}")
 
 
 def kernel_call(target_name: str):
+  """One call of the FFI target (cpu_attention's own call, `_ffi_attention`, fixes the name)."""
   return lambda query, key, value: jax.ffi.ffi_call(
       target_name, jax.ShapeDtypeStruct(query.shape, jnp.float32))(query, key, value)
 
