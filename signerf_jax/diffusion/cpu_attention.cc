@@ -94,11 +94,15 @@ struct Problem {
 };
 
 // The end of a key block for 8 queries' columns: their running sums and maxima updated, and their
-// out^T columns rescaled to the new maxima.
+// out^T columns rescaled to the new maxima. Where none of the 8 maxima moved the rescale is
+// exactly 2^0 = 1, so the pass over out^T is skipped without changing a bit.
 inline void update_running(__m256 maximum, __m256 rescale, __m256 sum, int head_dim,
                            float* running_max, float* running_sum, float* out) {
   _mm256_storeu_ps(running_sum, _mm256_fmadd_ps(_mm256_loadu_ps(running_sum), rescale, sum));
+  const bool moved =
+      _mm256_movemask_ps(_mm256_cmp_ps(maximum, _mm256_loadu_ps(running_max), _CMP_NEQ_UQ)) != 0;
   _mm256_storeu_ps(running_max, maximum);
+  if (!moved) return;
   for (int d = 0; d < head_dim; ++d)
     _mm256_storeu_ps(out + d * kQueryBlock,
                      _mm256_mul_ps(rescale, _mm256_loadu_ps(out + d * kQueryBlock)));

@@ -57,6 +57,18 @@ def test_zero_tiny_and_huge_scores(scale):
   assert_within_float32_rounding(query, key, random_qkv(70, 200, head_dim=16, seed=1)[2])
 
 
+def test_a_maximum_that_moves_in_the_last_key_block():
+  """The last of four key blocks (keys 288-299) holds the largest scores of two thirds of the
+  queries: their weights so far must be rescaled that late, while other queries in the same
+  8-query vector keep their maximum (the kernel skips the rescale only where none moved)."""
+  query, key, value = random_qkv(70, 300, head_dim=16)
+  key = key.at[:, 288:].multiply(2.0)
+  scores = np.einsum("bqhd,bkhd->bhqk", query, key)
+  moved = scores[..., 288:].max(-1) > scores[..., :288].max(-1)
+  assert 0.25 < moved.mean() < 0.75
+  assert_within_float32_rounding(query, key, value)
+
+
 def test_vmap_adds_a_batch_axis_the_kernel_folds_in():
   query, key, value = random_qkv(65, 97, head_dim=16)
   stacked = [jnp.stack([x, 2 * x]) for x in (query, key, value)]
