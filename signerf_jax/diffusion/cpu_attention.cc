@@ -93,16 +93,17 @@ struct Problem {
   int64_t batch, queries, keys, heads, head_dim;
 };
 
-// The end of a key block for 8 queries' columns: their running sums and maxima updated, and their
-// out^T columns rescaled to the new maxima. Where none of the 8 maxima moved the rescale is
-// exactly 2^0 = 1, so the pass over out^T is skipped without changing a bit.
-inline void update_running(__m256 maximum, __m256 rescale, __m256 sum, int head_dim,
+// The end of a key block for 8 queries' columns: their running sums and maxima (`previous` before
+// the block, `maximum` after it) updated, and their out^T columns rescaled to the new maxima.
+// Where none of the 8 maxima moved the rescale is exactly 2^0 = 1, so the pass over out^T is
+// skipped without changing a bit.
+inline void update_running(__m256 previous, __m256 maximum, __m256 sum, int head_dim,
                            float* running_max, float* running_sum, float* out) {
+  // 0 (up to the 2^-126 floor, times the zero sums) at the first block: the maxima start at -inf.
+  const __m256 rescale = exp2_non_positive(_mm256_sub_ps(previous, maximum));
   _mm256_storeu_ps(running_sum, _mm256_fmadd_ps(_mm256_loadu_ps(running_sum), rescale, sum));
-  const bool moved =
-      _mm256_movemask_ps(_mm256_cmp_ps(maximum, _mm256_loadu_ps(running_max), _CMP_NEQ_UQ)) != 0;
   _mm256_storeu_ps(running_max, maximum);
-  if (!moved) return;
+  if (_mm256_movemask_ps(_mm256_cmp_ps(maximum, previous, _CMP_NEQ_UQ)) == 0) return;
   for (int d = 0; d < head_dim; ++d)
     _mm256_storeu_ps(out + d * kQueryBlock,
                      _mm256_mul_ps(rescale, _mm256_loadu_ps(out + d * kQueryBlock)));
@@ -116,18 +117,13 @@ void softmax_block(float* scores, int keys, int padded_keys, int head_dim, float
                    float* running_sum, float* out) {
   for (int c = 0; c < kQueryBlock; c += 16) {
     float* column = scores + c;
-    __m256 maximum_a = _mm256_loadu_ps(running_max + c);
-    __m256 maximum_b = _mm256_loadu_ps(running_max + c + 8);
+    const __m256 previous_a = _mm256_loadu_ps(running_max + c);
+    const __m256 previous_b = _mm256_loadu_ps(running_max + c + 8);
+    __m256 maximum_a = previous_a, maximum_b = previous_b;
     for (int j = 0; j < keys; ++j) {
       maximum_a = _mm256_max_ps(maximum_a, _mm256_loadu_ps(column + j * kQueryBlock));
       maximum_b = _mm256_max_ps(maximum_b, _mm256_loadu_ps(column + j * kQueryBlock + 8));
     }
-    // 0 (up to the 2^-126 floor, times the zero sums) at the first block: the maxima start at
-    // -inf.
-    const __m256 rescale_a =
-        exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(running_max + c), maximum_a));
-    const __m256 rescale_b =
-        exp2_non_positive(_mm256_sub_ps(_mm256_loadu_ps(running_max + c + 8), maximum_b));
     __m256 sum_a = _mm256_setzero_ps(), sum_b = _mm256_setzero_ps();
     for (int j = 0; j < keys; ++j) {
       float* row = column + j * kQueryBlock;
@@ -143,9 +139,9 @@ void softmax_block(float* scores, int keys, int padded_keys, int head_dim, float
       _mm256_storeu_ps(column + j * kQueryBlock, _mm256_setzero_ps());
       _mm256_storeu_ps(column + j * kQueryBlock + 8, _mm256_setzero_ps());
     }
-    update_running(maximum_a, rescale_a, sum_a, head_dim, running_max + c, running_sum + c,
+    update_running(previous_a, maximum_a, sum_a, head_dim, running_max + c, running_sum + c,
                    out + c);
-    update_running(maximum_b, rescale_b, sum_b, head_dim, running_max + c + 8,
+    update_running(previous_b, maximum_b, sum_b, head_dim, running_max + c + 8,
                    running_sum + c + 8, out + c + 8);
   }
 }
