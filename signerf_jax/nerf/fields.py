@@ -20,6 +20,12 @@ from signerf_jax.nerf.encoding import GridLayout, HashGridEncoding, spherical_ha
 _EXP_GRADIENT_CLAMP = 15.0
 # Forward values stay below float32 max (the compositing clamps optical depth anyway).
 _EXP_VALUE_CLAMP = 80.0
+# The radiance field's fixed sizes (no capacity rule or config sets them): features the density
+# MLP passes to the colour MLP (with the density, instant-NGP's 16 outputs), the colour MLP's
+# hidden layers, and the size of a per-image appearance code.
+GEOMETRY_FEATURES = 15
+COLOR_HIDDEN_LAYERS = 2
+APPEARANCE_FEATURES = 8
 
 
 @with_derivative(lambda x: jnp.exp(jnp.minimum(x, _EXP_GRADIENT_CLAMP)))
@@ -69,11 +75,8 @@ class RadianceField(nn.Module):
   Attributes:
     layout: the position encoding's grid.
     width: hidden width of both MLPs.
-    geometry_features: features passed from the density MLP to the colour MLP.
-    color_layers: hidden layers of the colour MLP.
     sh_degree: spherical-harmonics degree of the direction encoding (degree**2 channels).
     num_appearance_embeddings: number of training images with an embedding (0 = off).
-    appearance_features: embedding size.
     initial_density: density of the untrained field (its raw output is ~0), in 1 / scene units.
       Too thick and the scene starts as fog the colour MLP paints in the background colour; too
       thin and surfaces need hundreds of steps to become opaque (soft surfaces, wrong depth).
@@ -81,19 +84,16 @@ class RadianceField(nn.Module):
 
   layout: GridLayout
   width: int = 64
-  geometry_features: int = 15
-  color_layers: int = 2
   sh_degree: int = 4
   num_appearance_embeddings: int = 0
-  appearance_features: int = 8
   initial_density: float = 1.0
 
   def setup(self):
     self.encoding = HashGridEncoding(self.layout)
-    self.density_mlp = MLP(self.width, 1, 1 + self.geometry_features)
-    self.color_mlp = MLP(self.width, self.color_layers, 3)
+    self.density_mlp = MLP(self.width, 1, 1 + GEOMETRY_FEATURES)
+    self.color_mlp = MLP(self.width, COLOR_HIDDEN_LAYERS, 3)
     if self.num_appearance_embeddings:
-      self.appearance = nn.Embed(self.num_appearance_embeddings, self.appearance_features,
+      self.appearance = nn.Embed(self.num_appearance_embeddings, APPEARANCE_FEATURES,
                                  embedding_init=nn.initializers.zeros)
 
   def _geometry(self, points, level_weights):
