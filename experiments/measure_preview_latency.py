@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
@@ -71,7 +71,9 @@ def cache_after_training(source: Path, work: Path, cache: Path) -> Path:
   and `signerf place` leave it, run with the code in `source` (a 20-s training: the same
   programs as a longer one)."""
   shutil.rmtree(cache, ignore_errors=True)
-  shutil.rmtree(work, ignore_errors=True)
+  ownership.clear(work / "run", ownership.RUN)
+  ownership.clear(work / "edit", ownership.EDIT)
+  shutil.rmtree(work / "compilation_cache", ignore_errors=True)  # Made below, from `cache`.
   signerf(source, cache, "train", "--data", real_scene_edit.SHARED_DATA / "stitch", "--downscale",
           real_scene_edit.DOWNSCALE, "--max_seconds", 20, "--out", work / "run")
   signerf(source, cache, "place", "--run", work / "run", "--out", work / "edit", "--view",
@@ -82,8 +84,10 @@ def cache_after_training(source: Path, work: Path, cache: Path) -> Path:
   return saved
 
 
-def timed_preview(source: Path, edit: Path, cache: Path, initial_cache: Path | None) -> dict:
-  """Runs the preview of `edit` with the code in `source` and the compilation cache `cache`,
+def timed_preview(source: Path, edit: Path, placed: Path, cache: Path,
+                  initial_cache: Path | None) -> dict:
+  """Runs the preview of `edit` (placed by the config file `placed`) with the code in `source`
+  and the compilation cache `cache`,
   empty or a copy of `initial_cache` (made at the same path): seconds to the first preview.png
   and to the end, and the stages' seconds."""
   shutil.rmtree(cache, ignore_errors=True)
@@ -91,8 +95,8 @@ def timed_preview(source: Path, edit: Path, cache: Path, initial_cache: Path | N
     shutil.copytree(initial_cache, cache)
   preview_png = edit / "preview" / "preview.png"
   start = time.perf_counter()
-  process = launch(source, cache, "preview", "--out", edit.resolve(), "--prompt", PROMPT,
-                   "--quiet")
+  process = launch(source, cache, "preview", "--out", edit.resolve(), "--gin_file", placed,
+                   "--prompt", PROMPT, "--quiet")
   first = None
   while process.poll() is None:
     if first is None and preview_png.is_file():
@@ -132,10 +136,8 @@ def main() -> None:
   for repeat in range(args.repeats):
     for label, source in sources.items():
       edit = Path(args.out) / label
-      shutil.rmtree(edit, ignore_errors=True)
-      edit.mkdir(parents=True)
-      shutil.copy(placed, edit / "config.gin")
-      runs[label].append(timed_preview(Path(source).resolve(), edit, cache,
+      ownership.clear(edit, ownership.EDIT)
+      runs[label].append(timed_preview(Path(source).resolve(), edit, placed, cache,
                                        initial_caches.get(label)))
       print(f"{label} run {repeat + 1}: {runs[label][-1]}", flush=True)
   summary = {label: {key: statistics.median(run[key] for run in measured)

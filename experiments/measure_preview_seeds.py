@@ -19,13 +19,12 @@ import argparse
 import collections
 import itertools
 import os
-import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 from signerf_jax.default_model import generated_objects
 from signerf_jax.editing import figures, sheet
 
@@ -88,11 +87,9 @@ def main() -> None:
   results, images = {}, []
   for prompt in args.prompts:
     edit = Path(args.out) / prompt.replace(" ", "_")
-    shutil.rmtree(edit, ignore_errors=True)
-    edit.mkdir(parents=True)
-    shutil.copy(placed, edit / "config.gin")
-    seconds, _ = signerf(cache, "preview", "--out", edit, "--prompt", prompt, "--seeds",
-                         *args.seeds, "--quiet")
+    ownership.clear(edit, ownership.EDIT)
+    seconds, _ = signerf(cache, "preview", "--out", edit, "--gin_file", placed, "--prompt",
+                         prompt, "--seeds", *args.seeds, "--quiet")
     results[prompt] = {**measure(edit, args.seeds), "preview_seconds": seconds}
     print(f"{prompt!r}: {results[prompt]}", flush=True)
     images.append(figures.image_grid([[files.read_image(edit / "preview" / "preview.png")]],

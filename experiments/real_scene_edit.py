@@ -32,7 +32,7 @@ import sys
 import time
 from pathlib import Path
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 from signerf_jax.editing import figures, generation
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.commands import sweeps
@@ -82,8 +82,9 @@ def main() -> None:
   run, edit, warm, full_frames = (out / "run", out / "edit", out / "edit_warm_preview",
                                   out / "edit_full_frames")
   cache = out / "compilation_cache"
-  for directory in (edit, warm, full_frames, cache):
-    shutil.rmtree(directory, ignore_errors=True)
+  for directory in (edit, warm, full_frames):
+    ownership.clear(directory, ownership.EDIT)
+  shutil.rmtree(cache, ignore_errors=True)  # The experiment's own compilation cache.
   seconds = {}
   seconds["train"], _ = signerf(cache, "train", "--data", SHARED_DATA / "stitch", "--out", run,
                                 "--downscale", DOWNSCALE, "--max_seconds", args.train_seconds)

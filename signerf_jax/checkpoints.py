@@ -6,12 +6,11 @@ never a silently different resume, and it is replaced atomically (written to a t
 flushed to disk, renamed), so an interrupted run keeps the previous one. The checkpoint it
 replaces is kept as checkpoint.previous.msgpack: when the latest is damaged (or a kill left only
 the previous one), `read` falls back to it with a warning. Temporary files a killed run left
-behind are removed by the next save.
+behind are removed when the run directory is next claimed (`ownership`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import warnings
@@ -22,7 +21,7 @@ import flax.serialization
 import jax
 import numpy as np
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 from signerf_jax.errors import InputError
 
 CHECKPOINT_NAME = "checkpoint.msgpack"
@@ -44,9 +43,8 @@ def has_checkpoint(directory: str | os.PathLike) -> bool:
 def save(directory: str | os.PathLike, state: Any, metadata: dict[str, Any]) -> Path:
   """Writes `state` and `metadata` to `directory`/checkpoint.msgpack atomically."""
   path = checkpoint_path(directory)
-  for orphan in path.parent.glob(f".{path.stem}.*{path.suffix}"):  # `files.atomic_path` names.
-    with contextlib.suppress(FileNotFoundError):
-      orphan.unlink()
+  previous = path.parent / PREVIOUS_NAME
+  ownership.check_replaceable(previous)
   payload = flax.serialization.msgpack_serialize({
       "state": flax.serialization.to_state_dict(jax.device_get(state)), "metadata": metadata})
   envelope = flax.serialization.msgpack_serialize(
@@ -56,7 +54,8 @@ def save(directory: str | os.PathLike, state: Any, metadata: dict[str, Any]) -> 
     # Written in full before the latest becomes the previous: a kill between the two renames
     # leaves the previous checkpoint, which `read` resumes from.
     if path.is_file():
-      os.replace(path, path.parent / PREVIOUS_NAME)
+      os.replace(path, previous)
+      ownership.record_written(previous)
   return path
 
 

@@ -9,11 +9,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Sequence
 
-from signerf_jax import allocator, files
+from signerf_jax import allocator, ownership
 from signerf_jax.errors import InputError
 
 # name -> (module implementing it, one-line help). Stages add themselves here.
@@ -53,6 +55,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 # slower. `preview` and `update` only sample and keep glibc's defaults (README, "Performance").
 KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "demo", "view")
 
+# Commands a rerun resumes (checkpoints and finished stages are kept): an interrupted one says so.
+RESUMABLE_COMMANDS = ("train", "edit", "update", "finetune", "demo")
+
 
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
   """The `signerf` parser; only the subcommand named first in `argv` adds its options."""
@@ -81,21 +86,50 @@ def use_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
+def _raise_terminated(signum: int, frame) -> None:
+  """SIGTERM's handler while a command runs: stops it as Ctrl-C does (`training_loop`)."""
+  del signum, frame
+  from signerf_jax import training_loop  # pylint: disable=g-import-not-at-top  (already loaded)
+  raise training_loop.Terminated()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-  """Runs the subcommand `argv` names; returns its exit code (2 with a message on bad input)."""
+  """Runs the subcommand `argv` names; returns its exit code: 2 with a message on bad input;
+  130 / 143 with one line after SIGINT / SIGTERM (a training run checkpoints its steps first
+  and the line names the step and where it was saved)."""
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser(argv).parse_args(argv)
   if args.command in KEEP_FREED_MEMORY_COMMANDS:
     allocator.keep_freed_memory()  # Before JAX starts its threads.
-  module = importlib.import_module(args.module_name)
+  # Here, not at the top: `signerf --help` stays fast without tqdm.
+  from signerf_jax import training_loop  # pylint: disable=g-import-not-at-top
+  # SIGTERM (a scheduler's or `kill`'s stop) ends a command as Ctrl-C does, not unannounced and
+  # mid-write. Not `view`'s: it stops its server on Ctrl-C only, and SIGTERM's default exit is
+  # as clean for it.
+  catch_sigterm = (args.command != "view"
+                   and threading.current_thread() is threading.main_thread())
+  previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if catch_sigterm else None
   try:
+    module = importlib.import_module(args.module_name)
     if getattr(args, "out", None):  # Every command names the directory it writes `--out`.
-      files.check_output_directory(args.out)
+      ownership.check_output_path(args.out)
     use_compilation_cache()
     return int(module.run(args) or 0)
   except InputError as error:
     print(f"signerf {args.command}: error: {error}", file=sys.stderr)
     return 2
+  except training_loop.TrainingInterrupted as interruption:
+    print(f"signerf {args.command}: {interruption}", file=sys.stderr)
+    return interruption.exit_code
+  except (KeyboardInterrupt, training_loop.Terminated) as error:
+    # Outside a training loop (loading, compiling, an edit's sampling stages): what is written
+    # is written atomically, and the resumable commands pick up from it.
+    resume = "; run the same command to resume" if args.command in RESUMABLE_COMMANDS else ""
+    print(f"signerf {args.command}: interrupted{resume}", file=sys.stderr)
+    return 128 + int(training_loop.signal_of(error))
+  finally:
+    if catch_sigterm:
+      signal.signal(signal.SIGTERM, previous_sigterm)
 
 
 if __name__ == "__main__":

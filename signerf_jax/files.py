@@ -1,4 +1,5 @@
-"""Reading and writing files: atomic writes, JSON, 8/16-bit images and EXR depth maps.
+"""Reading and writing files: atomic writes, JSON, 8/16-bit images and EXR depth maps, and the
+paths a data file names, kept inside its folder (`contained_path`).
 
 Every writer goes through `atomic_path`, so an interrupted run never leaves a half-written file:
 the data lands in a temporary file next to the target, is flushed to disk, and is renamed over
@@ -10,14 +11,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import re
-import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import cv2
 import numpy as np
 
+from signerf_jax import ownership
 from signerf_jax.errors import InputError
 
 
@@ -26,60 +26,32 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
   """Yields a temporary path in `path`'s directory; renames it onto `path` on success.
 
   The temporary name keeps `path`'s suffix so format-sniffing writers (OpenCV, OpenEXR) work.
+  Inside a directory a command claimed, the write is recorded and a file the project did not
+  write is never replaced (`ownership.prepare_write`).
+
+  Raises:
+    InputError naming `path`: it is a user's file in a claimed directory, or the disk is full
+      (the file `path` held before, if any, is left as it was).
   """
   path = Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
-  handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-  os.close(handle)
-  # mkstemp creates the file private (0600); give it the permissions a plain open() would.
-  os.chmod(temporary, 0o666 & ~_current_umask())
+  temporary = ownership.prepare_write(path)
+  # Created with the permissions a plain open() would give (mkstemp would make it 0600).
+  os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
   try:
-    yield Path(temporary)
+    yield temporary
     # On disk before the rename, and the rename itself on disk after it: a power loss leaves the
     # old file or the new one, never an empty or partial file under the target's name.
     _fsync(temporary, os.O_RDONLY)
     os.replace(temporary, path)
     _fsync(path.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-  except BaseException:
+  except BaseException as error:
     with contextlib.suppress(FileNotFoundError):
       os.remove(temporary)
+    if isinstance(error, OSError) and ownership.is_disk_full(error):
+      raise InputError(f"could not be written: {error.strerror}; the file it replaces, if any, "
+                       "is kept: free some space and run the command again", path) from None
     raise
-
-
-# `atomic_path`'s temporary names: "." + the target's stem + "." + mkstemp's 8 random characters
-# + the target's suffix.
-_TEMPORARY_NAME = re.compile(r"\..+\.[a-z0-9_]{8}(\.[^.]+)?")
-
-
-def remove_temporaries(directory: str | os.PathLike) -> list[Path]:
-  """Deletes the temporary files `atomic_path` left under `directory` (any depth) when a run
-  was killed mid-write; a run calls this on its own directory as it starts. Returns them."""
-  removed = []
-  for path in Path(directory).rglob(".*"):
-    if path.is_file() and _TEMPORARY_NAME.fullmatch(path.name):
-      with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-        removed.append(path)
-  return removed
-
-
-def check_output_directory(path: str | os.PathLike, flag: str = "out") -> None:
-  """Refuses a directory to write into that names a file, or lies under one or under a
-  directory this process cannot write, before any work is done (nothing is created here).
-
-  Raises:
-    InputError naming the path and the flag.
-  """
-  path = Path(path)
-  if path.exists() and not path.is_dir():
-    raise InputError("names a file, not a directory", path, flag)
-  existing = path
-  while not existing.exists():
-    existing = existing.parent
-  if not existing.is_dir():
-    raise InputError(f"cannot be created: {existing} is a file", path, flag)
-  if not os.access(existing, os.W_OK | os.X_OK):
-    raise InputError(f"cannot be written: {existing} is not writable", path, flag)
 
 
 def _fsync(path: str | os.PathLike, flags: int) -> None:
@@ -90,10 +62,49 @@ def _fsync(path: str | os.PathLike, flags: int) -> None:
     os.close(descriptor)
 
 
-def _current_umask() -> int:
-  mask = os.umask(0)
-  os.umask(mask)
-  return mask
+def contained_path(root: str | os.PathLike, relative: str | os.PathLike,
+                   source: str | os.PathLike, field: str, *, follow_links: bool = True) -> Path:
+  """`root / relative`, refused unless it lies inside `root`.
+
+  A data file names other files by paths relative to its folder (a dataset its images, masks
+  and depth maps; a weights index its shards); a path such as `../../secret.png`, an absolute
+  path elsewhere or (with `follow_links`) a symbolic link leading out would make a run read, and
+  later copy into its outputs, a file the user never put there. An absolute path that does lie
+  inside `root` is accepted; a `root` that is itself a symbolic link is fine.
+
+  Args:
+    root: the folder.
+    relative: the path as written in `source` (relative to `root`, or absolute).
+    source: the file that named the path (e.g. transforms.json), for errors.
+    field: the entry that named it (e.g. "frames[3].file_path"), for errors.
+    follow_links: check where symbolic links lead (datasets); False checks the path as written
+      (a model folder, whose files are links into a download cache by design).
+  Returns:
+    `root / relative` as written (not resolved: messages then show the path the user knows). It
+    need not exist: readers report a missing file.
+  Raises:
+    InputError naming `source` and `field`: not a path, an empty one, or one outside `root`.
+  """
+  if not isinstance(relative, (str, os.PathLike)):
+    raise InputError(f"expected a path (a string), found {relative!r}", source, field)
+  text = os.fspath(relative)
+  if not isinstance(text, str) or not text.strip():
+    raise InputError("is an empty path; expected a file inside the folder", source, field)
+  if "\0" in text:
+    raise InputError(f"{text!r} is not a valid path (it contains a NUL character)", source, field)
+  joined = Path(root) / text  # An absolute `text` stays as it is.
+  try:
+    if follow_links:
+      resolved_root, resolved = Path(root).resolve(), joined.resolve()
+    else:
+      resolved_root = Path(os.path.abspath(root))
+      resolved = Path(os.path.normpath(os.path.abspath(joined)))
+  except (OSError, RuntimeError) as error:  # RuntimeError: a symlink loop (Python < 3.13).
+    raise InputError(f"{text!r} cannot be resolved ({error})", source, field) from None
+  if not resolved.is_relative_to(resolved_root):
+    raise InputError(f"{text!r} points outside the folder {resolved_root} (to {resolved}); every "
+                     "file a data file names must lie inside its folder", source, field)
+  return joined
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -39,16 +39,33 @@ def find_weight_files(directory: str | os.PathLike, variant: str | None = None) 
         return [single]
       index = directory / f"{stem}{infix}.safetensors.index.json"
       if index.is_file():
-        weight_map = files.read_json(index).get("weight_map")
-        if not isinstance(weight_map, dict):
-          raise InputError("missing or malformed 'weight_map'", index, "weight_map")
-        return [directory / name for name in sorted(set(weight_map.values()))]
+        return _shard_files(directory, index)
   pickled = sorted(p.name for p in directory.iterdir() if p.suffix in PICKLE_SUFFIXES)
   if pickled:
     raise InputError(f"only pickled weights found ({', '.join(pickled)}); they are never "
                      "unpickled here: convert them to safetensors first (e.g. diffusers' "
                      "save_pretrained(..., safe_serialization=True))", directory)
   raise InputError("no .safetensors weights found", directory)
+
+
+def _shard_files(directory: Path, index: Path) -> list[Path]:
+  """The shards a `*.safetensors.index.json` names (its `weight_map`: tensor name -> shard file
+  name, as diffusers and transformers write it), each once, in sorted order.
+
+  Raises:
+    InputError naming the index and the entry: a weight_map that is missing, empty or not an
+    object, or a shard that is not a path inside `directory` (`../../x`, an absolute path or a
+    symlink leading out would read a file from anywhere on the machine as weights).
+  """
+  weight_map = files.read_json(index).get("weight_map")
+  if not isinstance(weight_map, dict):
+    raise InputError("missing or malformed 'weight_map'", index, "weight_map")
+  if not weight_map:
+    raise InputError("names no shard (an empty weight_map)", index, "weight_map")
+  # Links are not followed: a model in a download cache (Hugging Face's) is a folder of links.
+  return sorted({files.contained_path(directory, name, index, f"weight_map[{tensor!r}]",
+                                      follow_links=False)
+                 for tensor, name in weight_map.items()})
 
 
 def read_safetensors(paths: Sequence[str | os.PathLike] | str | os.PathLike,

@@ -6,6 +6,7 @@ a silently wrong result or a misleading message; and nothing half-written."""
 
 from __future__ import annotations
 
+import errno
 import json
 import shutil
 import struct
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file, save_file
 
-from signerf_jax import cli, files
+from signerf_jax import cli, files, ownership
 from signerf_jax.diffusion import pipeline
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.project import load_arrays, save_arrays
@@ -226,6 +227,48 @@ def place_without_a_target(tmp_path, inputs):
           ["give --view, --pixel and --proxy"], tmp_path / "edit")
 
 
+def out_is_the_dataset(tmp_path, inputs):
+  scene = copy(inputs["scene"], tmp_path / "scene")
+  return (["train", "--data", str(scene), "--out", str(scene), "--steps", "1"],
+          ["out", "is the input given as --data", "never writes into what it reads"],
+          scene / "model.json")
+
+
+def synthesize_over_a_capture(tmp_path, inputs):
+  capture = copy(inputs["scene"], tmp_path / "capture")
+  shutil.rmtree(capture / ownership.MARKER_FOLDER)  # A capture the user made, not signerf.
+  return (["synthesize", "--out", str(capture)],
+          [str(capture), "holds files signerf did not write", "nothing there is touched"],
+          capture / ownership.MARKER_FOLDER)
+
+
+def preview_into_a_run(tmp_path, inputs):
+  run = copy(inputs["run"], tmp_path / "run")
+  return (["preview", "--out", str(run), "--data", str(inputs["scene"]), "--prompt", "a red cow",
+           "--box", "-0.2", "-0.2", "-0.2", "0.2", "0.2", "0.2"],
+          [str(run), "is a signerf run directory, not an edit directory"], run / "stages.json")
+
+
+def resume_on_other_data(tmp_path, inputs):
+  run = copy(inputs["run"], tmp_path / "run")
+  other = copy(inputs["scene"], tmp_path / "other")
+  return (["train", "--data", str(other), "--out", str(run), "--steps", "3"],
+          [str(run / "model.json"), "fingerprint", "trained on other data", "--start_over"],
+          None)
+
+
+def resume_at_another_size(tmp_path, inputs):
+  run = copy(inputs["run"], tmp_path / "run")
+  return (["train", "--data", str(inputs["scene"]), "--out", str(run), "--downscale", "2",
+           "--steps", "3"], ["images of 16x16 px then, 8x8 now", "downscale 1 then, 2 now"],
+          None)
+
+
+def eval_chunk_size_beyond_memory(tmp_path, inputs):
+  return (["eval", "--run", str(inputs["run"]), "--chunk_size", "10000000000000"],
+          ["--chunk_size", "more than this machine's"], None)
+
+
 COMMAND_CASES = [
     gin_file_with_import, saved_run_config_with_import, saved_edit_config_with_import,
     truncated_image, flipped_checkpoint_byte, truncated_checkpoint, negative_learning_rate,
@@ -233,13 +276,17 @@ COMMAND_CASES = [
     list_for_a_learning_rate, zero_rays_per_batch, one_image_dataset, model_config_that_is_a_list,
     downscale_beyond_the_image, out_names_a_file, out_under_a_file, box_with_nan,
     garbage_proxy_mesh, llff_hwf_that_disagrees_with_the_images, decompression_bomb,
-    place_pixel_outside_the_view, place_without_a_target,
+    place_pixel_outside_the_view, place_without_a_target, out_is_the_dataset,
+    synthesize_over_a_capture, preview_into_a_run, resume_on_other_data, resume_at_another_size,
+    eval_chunk_size_beyond_memory,
 ]
 
 
-@pytest.mark.parametrize("case", COMMAND_CASES, ids=lambda case: case.__name__)
-def test_a_bad_input_to_a_command_is_one_clear_error(tmp_path, inputs, capsys, case):
-  argv, fragments, not_created = case(tmp_path, inputs)
+def assert_one_clear_error(argv: list[str], fragments: list[str], not_created: Path | None,
+                           capsys) -> None:
+  """`signerf ARGV` ends in exit code 2 and one error line holding every fragment, with no
+  traceback, and has not created `not_created` (when given). The catalogue's other files
+  (test_bad_input_catalogue_*.py) import this with `inputs` and `run_command`."""
   code, error = run_command(argv, capsys)
   assert code == 2
   assert "Traceback" not in error
@@ -249,6 +296,11 @@ def test_a_bad_input_to_a_command_is_one_clear_error(tmp_path, inputs, capsys, c
     assert fragment in message
   if not_created is not None:
     assert not not_created.exists()  # Refused before any work was done.
+
+
+@pytest.mark.parametrize("case", COMMAND_CASES, ids=lambda case: case.__name__)
+def test_a_bad_input_to_a_command_is_one_clear_error(tmp_path, inputs, capsys, case):
+  assert_one_clear_error(*case(tmp_path, inputs), capsys)
 
 
 def weights_with(tmp_path, change) -> Path:
@@ -285,3 +337,22 @@ def test_a_damaged_stage_output_names_the_file_and_the_remedy(tmp_path, damage):
   with pytest.raises(InputError, match=r"damaged stage output.*--redo") as error:
     load_arrays(path, ("mask", "control"))
   assert error.value.path == str(path)
+
+
+def test_a_full_disk_while_checkpointing_names_the_file_and_keeps_the_last_checkpoint(
+    tmp_path, inputs, capsys, monkeypatch):
+  run = copy(inputs["run"], tmp_path / "run")
+  checkpoint = (run / "checkpoint.msgpack").read_bytes()
+  write_bytes = Path.write_bytes
+
+  def full_disk_for_checkpoints(path, data):
+    if "checkpoint" in path.name:
+      raise OSError(errno.ENOSPC, "No space left on device")
+    return write_bytes(path, data)
+
+  monkeypatch.setattr(Path, "write_bytes", full_disk_for_checkpoints)
+  assert_one_clear_error(["train", "--data", str(inputs["scene"]), "--out", str(run), "--steps",
+                          "4", "--skip_eval"],
+                         [str(run / "checkpoint.msgpack"), "No space left on device",
+                          "is kept"], None, capsys)
+  assert (run / "checkpoint.msgpack").read_bytes() == checkpoint

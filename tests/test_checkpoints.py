@@ -57,14 +57,6 @@ def test_a_missing_checkpoint_is_an_error():
     checkpoints.read("/nonexistent/run")
 
 
-def test_temporary_files_of_a_killed_run_go_at_the_next_save(tmp_path):
-  orphan = tmp_path / ".checkpoint.k1ll3d.msgpack"  # As `files.atomic_path` names them.
-  orphan.write_bytes(b"half written")
-  checkpoints.save(tmp_path, STATE, {})
-  assert not orphan.exists()
-  assert sorted(path.name for path in tmp_path.iterdir()) == ["checkpoint.msgpack"]
-
-
 def flip_a_byte(path):
   data = bytearray(path.read_bytes())
   data[len(data) // 2] ^= 0x01

@@ -1,11 +1,15 @@
-"""The `signerf` entry point's process-wide settings."""
+"""The `signerf` entry point's process-wide settings, and how it ends an interrupted command."""
 
 from __future__ import annotations
+
+import signal
+import sys
+import types
 
 import jax
 import pytest
 
-from signerf_jax import allocator, cli
+from signerf_jax import allocator, cli, training_loop
 
 
 @pytest.fixture
@@ -57,3 +61,64 @@ def test_the_commands_that_train_a_nerf_keep_freed_memory(monkeypatch, tmp_path)
   assert cli.main(["preview", "--run", str(tmp_path / "missing"), "--out",
                    str(tmp_path / "edit")]) == 2
   assert calls == [True]  # The diffusion sampler runs slower keeping freed memory.
+
+
+@pytest.fixture
+def fake_command(monkeypatch):
+  """`signerf train` and `signerf render` run `fake.run` (set by the test) instead."""
+  fake = types.ModuleType("fake_signerf_command")
+  fake.add_arguments = lambda parser: None
+  monkeypatch.setitem(sys.modules, fake.__name__, fake)
+  for name in ("train", "render"):
+    monkeypatch.setitem(cli.COMMANDS, name, (fake.__name__, "a fake command"))
+  monkeypatch.setattr(allocator, "keep_freed_memory", lambda: None)
+  monkeypatch.setattr(cli, "use_compilation_cache", lambda: None)
+  return fake
+
+
+def test_an_interrupted_training_run_reports_its_step_and_checkpoint_in_one_line(fake_command,
+                                                                                capsys):
+  def run(args):
+    raise training_loop.TrainingInterrupted(1234, signal.SIGINT, "runs/lego", saved=True)
+
+  fake_command.run = run
+  assert cli.main(["train"]) == 130
+  assert capsys.readouterr().err == ("signerf train: interrupted at step 1234; checkpoint saved "
+                                     "in runs/lego; run the same command to resume\n")
+
+
+def test_sigterm_during_a_training_loop_checkpoints_and_exits_with_143(fake_command, capsys,
+                                                                      tmp_path):
+  saved, handlers = [], []
+
+  def advance(seconds):
+    handlers.append(signal.getsignal(signal.SIGTERM))
+    if len(handlers) == 3:
+      signal.raise_signal(signal.SIGTERM)  # The step still completes.
+    return {"loss": 1.0}
+
+  fake_command.run = lambda args: training_loop.run_loop(
+      advance, saved.append, training_loop.LoopBudget(until_step=100), step=0,
+      where=tmp_path / "run", progress=False)
+  assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+  assert cli.main(["train"]) == 143
+  assert len(saved) == 1 and len(handlers) == 3
+  assert capsys.readouterr().err == (f"signerf train: interrupted at step 3; checkpoint saved in "
+                                     f"{tmp_path / 'run'}; run the same command to resume\n")
+  assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # Only for the command's duration.
+
+
+@pytest.mark.parametrize("command,signum,expected", [
+    ("train", signal.SIGINT, "signerf train: interrupted; run the same command to resume\n"),
+    ("train", signal.SIGTERM, "signerf train: interrupted; run the same command to resume\n"),
+    ("render", signal.SIGINT, "signerf render: interrupted\n"),
+])
+def test_a_signal_outside_training_ends_the_command_in_one_line(fake_command, capsys, command,
+                                                                signum, expected):
+  def run(args):
+    signal.raise_signal(signum)  # Ctrl-C raises KeyboardInterrupt, SIGTERM Terminated.
+    raise AssertionError("not stopped by the signal")
+
+  fake_command.run = run
+  assert cli.main([command]) == 128 + signum
+  assert capsys.readouterr().err == expected

@@ -99,18 +99,3 @@ def test_garbage_is_not_a_readable_image(tmp_path, contents):
   path.write_bytes(contents)
   with pytest.raises(InputError, match="not a readable image|truncated"):
     files.read_image(path)
-
-
-def test_temporaries_of_a_killed_write_are_removed_and_nothing_else(tmp_path):
-  (tmp_path / "sheet").mkdir()
-  with files.atomic_path(tmp_path / "sheet" / "sheet.png") as temporary:
-    name_while_written = temporary.name  # What a kill at this point leaves behind.
-    temporary.write_bytes(b"done")
-  orphans = [tmp_path / "sheet" / name_while_written, tmp_path / ".metrics.a_b2c3d4.json"]
-  for orphan in orphans:
-    orphan.write_text("half written")
-  keep = [tmp_path / ".gitignore", tmp_path / "sheet" / "sheet.png", tmp_path / ".notes.txt"]
-  for path in keep:
-    path.write_text("keep")
-  assert sorted(files.remove_temporaries(tmp_path)) == sorted(orphans)
-  assert all(path.exists() for path in keep) and not any(path.exists() for path in orphans)

@@ -18,9 +18,9 @@ text into single characters. The steps:
      (a hand-written scanner over Unicode categories: Python's `re` has no `\\p{..}` classes);
   4. each pre-token is mapped byte-wise to GPT-2's printable byte alphabet, its last symbol gets
      the `</w>` end-of-word suffix, and BPE merges are applied lowest rank first;
-  5. `<bos> tokens <eos>`, truncated to `max_length` (the eos is kept) and padded with the
-     checkpoint's pad token (`<|endoftext|>` for SD 1.x, `!` = id 0 for SD 2.x and SDXL's second
-     tokenizer).
+  5. `<bos> tokens <eos>`, truncated to `max_length` (the eos is kept; `cut_off` names the end
+     cut) and padded with the checkpoint's pad token (`<|endoftext|>` for SD 1.x, `!` = id 0 for
+     SD 2.x and SDXL's second tokenizer).
 Character classes come from Python's `unicodedata`; characters assigned in a newer Unicode
 version than Python's (14.0 for Python 3.11) may be classed differently from the reference.
 """
@@ -62,6 +62,13 @@ class Tokenizer(Protocol):
 
   def unknown_words(self, text: str) -> list[str]:
     """The words of `text` the tokenizer can only map to its unknown token."""
+
+  def dropped_characters(self, text: str) -> list[str]:
+    """The characters of `text` the text encoder never sees: dropped, or read as the unknown
+    token (each once, in order)."""
+
+  def cut_off(self, text: str) -> str:
+    """The end of `text` `tokenize` truncates ("" when all of it fits)."""
 
 
 @functools.cache
@@ -260,8 +267,63 @@ class CLIPTokenizer:
                                 self.pad_id)
 
   def unknown_words(self, text: str) -> list[str]:
-    """None: byte-level BPE spells any word out of its pieces."""
+    """None: byte-level BPE spells any word out of its pieces (a vocabulary lacking some byte
+    makes its characters unknown: `dropped_characters`)."""
     return []
+
+  def dropped_characters(self, text: str) -> list[str]:
+    """The characters (normalised) whose bytes are not all in the vocabulary: they become the
+    unknown token. None with CLIP's vocabulary, which holds every byte."""
+    dropped = []
+    for piece, is_special in _split_special_tokens(text, self.special_tokens):
+      if is_special:
+        continue
+      for word in pre_tokenize(normalize(piece)):
+        if self.unk_id not in self._word_ids(word):
+          continue
+        for index, character in enumerate(word):
+          symbols = [byte_to_symbol()[byte] for byte in character.encode("utf-8")]
+          if index == len(word) - 1:
+            symbols[-1] += END_OF_WORD
+          if any(symbol not in self.vocabulary for symbol in symbols):
+            dropped.append(character)
+    return list(dict.fromkeys(dropped))
+
+  def cut_off(self, text: str) -> str:
+    """The end of `text` beyond the max_length - 2 tokens `tokenize` keeps ("" if none)."""
+    return token_ids.cut_off_text(text, self.encode, self.max_length,
+                                  lambda character: _character_class(character) == "space")
+
+
+def prompt_problems(tokenizer: Tokenizer, text: str) -> list[str]:
+  """What of a prompt the text encoder will not read as written, one sentence each: words the
+  tokenizer does not know (with the words it knows, when it has a closed vocabulary),
+  characters it cannot encode, and the end cut off past its `max_length`. [] when none."""
+  problems = []
+  unknown = tokenizer.unknown_words(text)
+  if unknown:
+    known = getattr(tokenizer, "words", None)
+    knows = f"; it knows {len(known)} words: {' '.join(known)}" if known is not None else ""
+    problems.append(f"the model does not know {', '.join(map(repr, unknown))} (it reads them as "
+                    f"its unknown token){knows}")
+  dropped = tokenizer.dropped_characters(text)
+  if dropped:
+    problems.append(f"the model's tokenizer cannot encode {', '.join(map(_describe, dropped))}: "
+                    "its text encoder does not see them")
+  cut = tokenizer.cut_off(text)
+  if cut:
+    problems.append(f"longer than the {tokenizer.max_length - 2} tokens the model's text encoder "
+                    f"reads: the end {cut!r} is cut off")
+  return problems
+
+
+def _describe(character: str) -> str:
+  """A character as an error message shows it: quoted, or by code point and name when it would
+  be invisible on its own (a combining mark, a control or format character, a space)."""
+  if unicodedata.category(character)[0] not in "MCZ":
+    return repr(character)
+  name = unicodedata.name(character, "")  # Controls have none.
+  return f"U+{ord(character):04X}" + (f" ({name.lower()})" if name else "")
 
 
 def _split_special_tokens(text: str, special_tokens: Sequence[str]) -> list[tuple[str, bool]]:

@@ -1,10 +1,11 @@
 """A word-level tokenizer for small text encoders trained on a closed vocabulary.
 
-Text is lower-cased and split into runs of letters and digits; everything else (whitespace,
-punctuation, underscores) only separates words. Each word maps to its id in the vocabulary, or to
-the unknown token. `tokenize` lays ids out as the CLIP tokenizer does: bos, the words (truncated
-to max_length - 2), eos, then padding, so the CLIP text encoder's pooling at the first eos works
-unchanged.
+Text is lower-cased and split into runs of letters and digits; whitespace and punctuation
+(underscores included) only separate words, and anything else (emoji and other symbols,
+combining marks, controls) is dropped (`dropped_characters` names it). Each word maps to its id
+in the vocabulary, or to the unknown token. `tokenize` lays ids out as the CLIP tokenizer does:
+bos, the words (truncated to max_length - 2; `cut_off` names the words cut), eos, then padding,
+so the CLIP text encoder's pooling at the first eos works unchanged.
 
 Saved in a checkpoint's `tokenizer/` folder (diffusers layout) as
   vocab.json              {token: id}: the four special tokens, then the words in sorted order;
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import os
 import re
+import unicodedata
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -117,6 +119,23 @@ class WordTokenizer:
   def unknown_words(self, text: str) -> list[str]:
     """The words of `text` not in the vocabulary (each once, in order)."""
     return list(dict.fromkeys(word for word in split_words(text) if word not in self.vocabulary))
+
+  def dropped_characters(self, text: str) -> list[str]:
+    """The characters of `text` the tokenizer drops without a trace (each once, in order): not
+    in a word, and neither whitespace nor punctuation, which only separate words. Emoji and
+    other symbols, for example."""
+    text = text.lower()  # What `split_words` splits (lower-casing may add combining marks).
+    in_words = set()
+    for match in _WORD.finditer(text):
+      in_words.update(range(match.start(), match.end()))
+    return list(dict.fromkeys(
+        character for index, character in enumerate(text)
+        if index not in in_words and not character.isspace()
+        and not unicodedata.category(character).startswith("P")))
+
+  def cut_off(self, text: str) -> str:
+    """The end of `text` beyond the max_length - 2 words `tokenize` keeps ("" if none)."""
+    return token_ids.cut_off_text(text, self.encode, self.max_length)
 
   @property
   def words(self) -> list[str]:

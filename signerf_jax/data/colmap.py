@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from signerf_jax import files
 from signerf_jax.camera import Cameras
 from signerf_jax.data import colmap_model
 from signerf_jax.data import poses as poses_lib
@@ -103,7 +104,8 @@ def read_capture(root: str | os.PathLike) -> Capture:
 
   Raises:
     InputError: naming the file and the record at fault (e.g. `images.bin`, `image 7`): an
-      unsupported camera model, a corrupt or truncated file, images of mixed sizes or lenses.
+      unsupported camera model, a corrupt or truncated file, images of mixed sizes or lenses,
+      an image name leading outside `root/images` (`../x.png`, an absolute path, a symlink).
   """
   root = Path(root)
   folder = model_folder(root)
@@ -121,9 +123,12 @@ def read_capture(root: str | os.PathLike) -> Capture:
       raise InputError(f"names {image.name!r} again (image {previous.image_id} has it too)",
                        images_path, f"image {image.image_id}")
 
-  lenses, camera_to_world = [], []
+  lenses, camera_to_world, image_paths = [], [], []
   for image in images:
     label = f"image {image.image_id}"
+    # A name is a path relative to the image folder, as COLMAP was given it; `../../x` or an
+    # absolute path would read (and copy into a run's outputs) a file outside the dataset.
+    image_paths.append(files.contained_path(root / IMAGE_FOLDER, image.name, images_path, label))
     if image.camera_id not in colmap_cameras:
       raise InputError(f"its camera {image.camera_id} is not in {cameras_path.name}", images_path,
                        label)
@@ -143,9 +148,8 @@ def read_capture(root: str | os.PathLike) -> Capture:
       root=root,
       cameras=cameras,
       names=tuple(f"{IMAGE_FOLDER}/{image.name}" for image in images),
-      files=tuple(ViewFiles(image=root / IMAGE_FOLDER / image.name,
-                            label=f"{images_path.name}: image {image.image_id}")
-                  for image in images),
+      files=tuple(ViewFiles(image=path, label=f"{images_path.name}: image {image.image_id}")
+                  for image, path in zip(images, image_paths)),
       points=points if len(points) else None,
       format="colmap",
   )

@@ -4,7 +4,8 @@
   * cameras: per camera id a model (MODELS_BY_ID), the image size and the model's parameters.
   * images: per registered image its world-to-camera pose in OpenCV axes (qvec = (qw, qx, qy,
     qz), a Hamilton unit quaternion, and tvec: x_camera = R(qvec) x_world + tvec), its camera id
-    and its file name; the 2D keypoints are skipped.
+    and its file name (as written: `colmap` checks it stays inside the image folder); the 2D
+    keypoints are skipped (in images.txt after checking their line has their form).
   * points3D: the sparse points; only their positions are read.
 
 A corrupt or truncated file is an InputError naming the file and the record at fault; `colmap`
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import struct
 from pathlib import Path
 from typing import Iterator
@@ -254,20 +256,65 @@ def _read_cameras_text(path: Path) -> list[ColmapCamera]:
   return cameras
 
 
+# One POINTS2D line: (X Y POINT3D_ID) triples, X and Y decimal numbers, POINT3D_ID an integer
+# (-1 for a keypoint without a 3D point); empty for an image without keypoints. Checked as one
+# regular expression, linear in the line's length, rather than by parsing millions of numbers.
+# Each token matches in one way only (there are no two ways to split "123" between `\d+` and
+# `\d*`), so a line that fails fails after one pass, not after exponentially many retries.
+_DECIMAL = r"[-+]?(?:(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?|nan|inf(?:inity)?)"
+_POINT2D = rf"{_DECIMAL}\s+{_DECIMAL}\s+[-+]?\d+"
+_POINTS2D_LINE = re.compile(rf"\s*(?:{_POINT2D}(?:\s+{_POINT2D})*)?\s*", re.IGNORECASE)
+IMAGE_LAYOUT = "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"
+
+
 def _read_images_text(path: Path) -> list[ColmapImage]:
-  """Two lines per image: IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then its 2D points
-  (the line right after, blank when it has none: it is skipped)."""
+  """Two lines per image: IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then its 2D points.
+
+  The line right after an image's line is its POINTS2D line, whatever it holds, as in COLMAP's
+  own readers (COLMAP writes it for every image, empty when the image has no keypoints); only
+  blank and comment lines before an image's line are skipped. A file written with one line per
+  image would otherwise lose every second image into a "points" line, silently, so the points
+  line is checked: it must be empty or (X Y POINT3D_ID) triples. One that reads as an image line
+  is the tell of a file without points lines, and is refused naming the line; the last image's
+  points line may be missing at the end of the file (COLMAP reads that as no points).
+  """
   images = []
   lines = _text_lines(path)
   # The name is the rest of the line (it may hold spaces).
-  for number, fields in _records(lines, "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME", path,
-                                 maxsplit=9):
+  for number, fields in _records(lines, IMAGE_LAYOUT, path, maxsplit=9):
     image_id, camera_id = _numbers([fields[0], fields[8]], int, path, f"line {number}")
     pose = _numbers(fields[1:8], float, path, f"image {image_id}")
     images.append(ColmapImage(image_id, tuple(pose[:4]), tuple(pose[4:]), camera_id,
                               fields[9].strip()))
-    next(lines, None)  # The image's 2D points.
+    points_number, points_line = next(lines, (number + 1, ""))
+    if not _POINTS2D_LINE.fullmatch(points_line):
+      _refuse_points_line(points_line, image_id, path, f"line {points_number}")
   return images
+
+
+def _refuse_points_line(line: str, image_id: int, path: Path, field: str) -> None:
+  """Raises the InputError for a line that is not the POINTS2D line expected there."""
+  if _is_image_line(line):
+    raise InputError(
+        f"reads as an image line ({IMAGE_LAYOUT}) where image {image_id}'s POINTS2D line is "
+        "expected: images.txt holds two lines per image, the image and then its 2D points (an "
+        "empty line for an image without any); this file seems to lack the points lines, and "
+        "reading it would skip every second image", path, field)
+  raise InputError(f"image {image_id}'s POINTS2D line must be empty or (X Y POINT3D_ID) "
+                   f"triples, got {line[:60]!r}", path, field)
+
+
+def _is_image_line(line: str) -> bool:
+  """Whether `line` parses as an image line: IMAGE_ID ... CAMERA_ID integers, the pose numbers."""
+  fields = line.split(maxsplit=9)
+  if len(fields) < 10:
+    return False
+  try:
+    int(fields[0]), int(fields[8])
+    [float(value) for value in fields[1:8]]
+  except ValueError:
+    return False
+  return True
 
 
 def _read_points_text(path: Path) -> tuple[list[int], list[list[float]]]:

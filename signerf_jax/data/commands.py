@@ -6,13 +6,15 @@ from __future__ import annotations
 import argparse
 import time
 
-from signerf_jax import configs
+from signerf_jax import configs, ownership
 from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.validation import NonNegativeInt, argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--out", required=True, help="directory to write the dataset to")
+  parser.add_argument("--out", required=True,
+                      help="directory to write the dataset to: new, empty, or a dataset "
+                      "`signerf synthesize` wrote (never a folder of other files)")
   configs.add_gin_arguments(parser, "synthetic_cameras.image_size = 128")
   parser.add_argument("--seed", type=argument_type(NonNegativeInt), default=0,
                       help="random seed of the scene")
@@ -21,10 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
   configs.parse_gin(args.gin_file, args.gin_param)
   start = time.perf_counter()
-  dataset, scene = synthetic_render.generate(args.out, seed=args.seed,
-                                             settings=configs.build(synthetic.SceneSettings),
-                                             rig=configs.build(synthetic_render.CameraRig))
-  configs.save_gin_config(args.out)
+  settings, rig = configs.build(synthetic.SceneSettings), configs.build(synthetic_render.CameraRig)
+  with ownership.claimed(args.out, ownership.DATASET):
+    dataset, scene = synthetic_render.generate(args.out, seed=args.seed, settings=settings,
+                                               rig=rig)
+    configs.save_gin_config(args.out)
   seconds = time.perf_counter() - start
   print(f"signerf synthesize: {dataset.num_images} views of {dataset.width}x{dataset.height} px, "
         f"{len(scene.objects)} objects (seed {args.seed}) written to {args.out} in "

@@ -56,6 +56,10 @@ MIN_CENTRAL_POINTS = 8
 DEPTH_PERCENTILES = (0.1, 99.9)
 # Projections of at most this many points are used (a random subset beyond).
 MAX_POINTS = 20000
+# Cameras whose positions all lie within this fraction of their coordinates' size of their
+# centroid stand at one position (`cameras_stationary`): ~8 steps of float32's rounding (1.2e-7),
+# the precision cameras are stored in, so only copies of one position and their rounding count.
+STATIONARY_FRACTION = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,6 +200,44 @@ def _up_rotation(cameras: Cameras) -> np.ndarray:
   return poses_lib.rotation_between(up, [0.0, 0.0, 1.0])
 
 
+def cameras_stationary(cameras: Cameras) -> bool:
+  """Whether every camera stands at (nearly) one position (`STATIONARY_FRACTION`): their views
+  then show no parallax, and nothing in them tells where the scene is or how far it reaches."""
+  positions = np.asarray(cameras.positions, np.float64)
+  spread = float(np.max(np.linalg.norm(positions - positions.mean(axis=0), axis=-1)))
+  return spread <= STATIONARY_FRACTION * float(np.max(np.abs(positions)))
+
+
+def _stationary_error(cameras: Cameras) -> InputError:
+  """The error for cameras at one position that nothing else places a region around (the
+  loader adds the dataset's path)."""
+  position = ", ".join(f"{value:.6g}" for value in np.asarray(cameras.positions[0], np.float64))
+  return InputError(
+      f"all {cameras.num_cameras} cameras stand at one position ({position}): the cameras do "
+      "not move, so the views show no parallax and the scene's position and size cannot be "
+      "inferred from them; give the region to model in the dataset's units with --scene_center "
+      "X Y Z and --scene_radius R")
+
+
+def _region_centre(cameras: Cameras, points, object_sphere, scene_center, scene_radius
+                   ) -> tuple[np.ndarray, list[str]]:
+  """The inner region's centre (source units) and how it was found (`object_centric_frame`'s
+  arguments): given, the object sphere's, or where the optical axes meet (SfM points refine it).
+  """
+  if scene_center is not None:
+    return np.asarray(scene_center, np.float64), ["centre given"]
+  if object_sphere is not None:
+    return np.asarray(object_sphere[0], np.float64), ["object sphere"]
+  refined = None if points is None else central_content(cameras, points)
+  if refined is not None:
+    return refined, ["optical axes", "SfM points"]
+  if scene_radius is None and cameras_stationary(cameras):
+    # The axes of cameras at one position meet there: the region would shrink to the rounding
+    # noise of their coordinates.
+    raise _stationary_error(cameras)
+  return nearest_point_to_axes(cameras), ["optical axes"]
+
+
 def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None,
                          scene_center=None, scene_radius=None) -> SceneFrame:
   """The frame of a 360-degree capture (see the module docstring).
@@ -207,21 +249,11 @@ def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None,
       centre (the inner region still reaches the cameras).
     scene_center, scene_radius: overrides in source units (the inner region's centre and
       half-side).
+  Raises:
+    InputError: the cameras stand at one position (`cameras_stationary`) and nothing else
+      (points, an object sphere, scene_center, scene_radius) places the region.
   """
-  method = []
-  if scene_center is not None:
-    centre = np.asarray(scene_center, np.float64)
-    method.append("centre given")
-  elif object_sphere is not None:
-    centre = np.asarray(object_sphere[0], np.float64)
-    method.append("object sphere")
-  else:
-    centre = nearest_point_to_axes(cameras)
-    method.append("optical axes")
-    refined = None if points is None else central_content(cameras, points)
-    if refined is not None:
-      centre = refined
-      method.append("SfM points")
+  centre, method = _region_centre(cameras, points, object_sphere, scene_center, scene_radius)
   positions = np.asarray(cameras.positions, np.float64)
   distances = np.linalg.norm(positions - centre, axis=-1)
   rotation = _up_rotation(cameras)
@@ -236,7 +268,12 @@ def object_centric_frame(cameras: Cameras, *, points=None, object_sphere=None,
                      field="scene_radius")
   scale = 1.0 / half_side
   world_from_source = poses_lib.similarity(scale, rotation, -scale * rotation @ centre)
-  near = DEFAULT_NEAR_FRACTION * float(np.median(distances)) * scale
+  reach = float(np.median(distances))
+  if reach <= STATIONARY_FRACTION * half_side:
+    # Cameras at the region's centre (a panorama with --scene_radius): start rays a fraction
+    # of the region's size out rather than at the lens (near 0 breaks disparity spacing).
+    reach = half_side
+  near = DEFAULT_NEAR_FRACTION * reach * scale
   if points is not None and len(points):
     _, depth = _project(cameras, _subsample(np.asarray(points, np.float64)))
     in_front = np.where(depth > 0, depth, np.inf)
@@ -320,8 +357,16 @@ def estimate_frame(cameras: Cameras, *, kind: str | None = None, points=None,
     scene_center, scene_radius: overrides of the inner region in source units (unbounded
       scenes).
   Raises:
-    InputError: an unknown kind, or "bounded" (bounded scenes come with their frame).
+    InputError: an unknown kind, or "bounded" (bounded scenes come with their frame); cameras
+      that stand at one position with nothing else to place the region
+      (`cameras_stationary`).
   """
+  overrides_region = scene_center is not None or scene_radius is not None
+  if (kind is None and overrides_region and depth_bounds is None and points is None
+      and cameras_stationary(cameras)):
+    # Cameras at one position give no forward-facing frame (no parallax to find depths
+    # from); the region the user gives is what the stationary-camera error asks for.
+    kind = "unbounded"
   kind = kind or classify(cameras)
   if kind == "forward_facing":
     if scene_center is not None or scene_radius is not None:
@@ -332,6 +377,9 @@ def estimate_frame(cameras: Cameras, *, kind: str | None = None, points=None,
     if depth_bounds is None and points is not None:
       depth_bounds, method = visible_depth_bounds(cameras, points), "SfM point depths"
     if depth_bounds is None:
+      if cameras_stationary(cameras):
+        # The guess scales a frustum box by the cameras' spread: zero here.
+        raise _stationary_error(cameras)
       depth_bounds, method = guessed_depth_bounds(cameras), "guessed from the optical axes"
     frame = forward_facing_frame(cameras, np.asarray(depth_bounds, np.float64))
     return dataclasses.replace(frame, method=f"{frame.method} ({method})")

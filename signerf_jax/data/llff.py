@@ -44,6 +44,13 @@ def read_capture(root: str | os.PathLike, downscale: int = 1) -> Capture:
     rows = np.load(path, allow_pickle=False)
   except (ValueError, OSError, EOFError) as error:
     raise InputError(f"not a readable .npy array ({error})", path) from None
+  if not isinstance(rows, np.ndarray):  # np.load opens a zip (.npz) archive whatever its name.
+    raise InputError("is an .npz archive, not the single .npy array LLFF writes", path)
+  # Only real floating-point values are poses: casting would drop a complex array's imaginary
+  # parts (with a mere warning), turn text such as "1.5" into numbers, or fail with a traceback.
+  if rows.dtype.kind != "f":
+    raise InputError(f"must hold floating-point numbers, got dtype {rows.dtype} (LLFF writes "
+                     "float64)", path, "dtype")
   if rows.ndim != 2 or rows.shape[1] != 17 or rows.shape[0] == 0:
     raise InputError(f"must be an [N, 17] array, got shape {rows.shape}", path)
   matrices = rows[:, :15].reshape(-1, 3, 5).astype(np.float64)

@@ -18,7 +18,7 @@ import numpy as np
 from signerf_jax.data import blender, colmap, llff, nerfstudio, neus, splits, views
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import poses as poses_lib
-from signerf_jax.data.capture import Capture, ViewFiles
+from signerf_jax.data.capture import FILE_KEYS, Capture, ViewFiles
 from signerf_jax.data.dataset import Dataset, SceneViews
 from signerf_jax.data.frame import SCENE_KINDS, SceneFrame
 from signerf_jax.errors import InputError
@@ -98,10 +98,16 @@ def scene_frame(capture: Capture, *, scene_kind: str | None = None, scene_center
   if scene_radius is not None:
     scene_radius = float(scene_radius) * poses_lib.similarity_scale(capture.file_from_source)
   kind = scene_kind or capture.kind
-  estimated = frame_lib.estimate_frame(
-      capture.cameras, kind="unbounded" if kind == "bounded" else kind, points=capture.points,
-      depth_bounds=capture.depth_bounds, object_sphere=capture.object_sphere,
-      scene_center=scene_center, scene_radius=scene_radius)
+  try:
+    estimated = frame_lib.estimate_frame(
+        capture.cameras, kind="unbounded" if kind == "bounded" else kind, points=capture.points,
+        depth_bounds=capture.depth_bounds, object_sphere=capture.object_sphere,
+        scene_center=scene_center, scene_radius=scene_radius)
+  except InputError as error:
+    if error.path is not None or error.field is not None:
+      raise
+    # A problem of the cameras themselves (they do not move): name the dataset.
+    raise InputError(error.problem, capture.root) from None
   if kind != "bounded":
     return estimated
   # A bounded scene: the same inner region, rays confined to it, a constant background.
@@ -147,8 +153,10 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
                 else np.asarray(background_color, np.float32))
   cameras = scene_views.cameras
   reader = _ViewReader(capture, downscale, (cameras.width, cameras.height))
-  images, alphas, masks, depths, object_masks = reader.read_views(
-      [capture.files[index] for index in selected], background)
+  chosen_files = [capture.files[index] for index in selected]
+  images, alphas, masks, depths, object_masks = reader.read_views(chosen_files, background)
+  if masks is not None and not np.any(masks > 0):
+    raise _no_unmasked_pixel(capture, chosen_files, split)
   return Dataset(
       images=images,
       cameras=cameras,
@@ -169,6 +177,16 @@ def load_dataset(root: str | os.PathLike, *, split: str = "train", downscale: in
   )
 
 
+def _no_unmasked_pixel(capture: Capture, chosen: Sequence[ViewFiles], split: str) -> InputError:
+  """The error for masks that are 0 everywhere (0 = ignore the pixel): training would fit no
+  pixel and report a perfect, meaningless score."""
+  folders = {view.mask.parent for view in chosen if view.mask is not None}
+  where = folders.pop() if len(folders) == 1 else capture.root
+  return InputError(f"every pixel of every mask of the {len(chosen)} {split} views is 0 "
+                    "(0 = ignore the pixel), so no pixel is left to train or evaluate on; the "
+                    "masks are likely inverted or empty", where, FILE_KEYS["mask"])
+
+
 def load_views(root: str | os.PathLike, *, split: str = "train", downscale: int = 1,
                eval_every: int | None = None, held_out: Sequence[str] = (),
                scene_kind: str | None = None, scene_center=None,
@@ -186,6 +204,10 @@ def _chosen_views(root, split, downscale, eval_every, held_out, scene_kind, scen
   capture = read_capture(root, downscale)
   frame = scene_frame(capture, scene_kind=scene_kind, scene_center=scene_center,
                       scene_radius=scene_radius)
+  if (capture.format == "blender" and split == "eval" and eval_every is None and not held_out
+      and not capture.source_splits.get("eval")):
+    # Say which file holds no held-out view (the reader skips missing test images).
+    raise blender.empty_test_split(capture.root)
   selected = splits.select_views(capture.names, split, source_splits=capture.source_splits,
                                  eval_every=eval_every, held_out=held_out, path=capture.root)
   cameras = poses_lib.transform_cameras(frame.world_from_source, capture.cameras)

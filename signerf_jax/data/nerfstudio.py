@@ -27,10 +27,8 @@ signerf extension (optional, ignored by nerfstudio): a top-level block
 and per frame "object_mask_path": an 8-bit PNG of object ids (0 = none), loaded into
 `Dataset.extras["object_masks"]`.
 
-The scene frame: with `signerf.scene_bounds`, bounds already inside [-1, 1]^3 are kept as they
-are (the file is already normalised, e.g. written by `nerfstudio_writer`); others are centred and
-scaled so their largest side spans [-1, 1]. near/far default to the range covering the bounds.
-Without it (a plain capture), `frame.estimate_frame` finds it from the cameras.
+The scene frame: `signerf.scene_bounds` inside [-1, 1]^3 are kept (e.g. `nerfstudio_writer`'s),
+others centred and scaled to span [-1, 1]; without them `frame.estimate_frame` finds the frame.
 """
 
 from __future__ import annotations
@@ -70,6 +68,17 @@ FISHEYE_MODELS = ("OPENCV_FISHEYE",)
 DEFAULT_DEPTH_UNIT_SCALE = 1e-3
 # Extensions tried, in order, for a `file_path` given without one (instant-NGP captures).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+# Larger distortion coefficients are refused. They act on normalised image coordinates (r = 1
+# at 45 degrees off-axis), where real lenses' coefficients are below 1 (wide-angle k1 ~ -0.3),
+# and the rational model's, whose numerator and denominator nearly cancel, a few hundred at
+# most; a k1 of 1e3 would move a point at r = 0.5 by 125 focal lengths. Such values are
+# corrupt files, not lenses.
+MAX_DISTORTION_COEFFICIENT = 1e3
+# `signerf.scene_bounds` whose largest side is below this fraction of the farthest camera's
+# distance from the box (or of the box's own distance from the origin, if larger) are refused:
+# the scene is stored in float32 (7 significant digits), which cannot place a sample inside
+# such a box, and the model's grid would get no cell of it.
+MIN_BOUNDS_FRACTION = 1e-5
 
 
 def has_intrinsics(meta: Any) -> bool:
@@ -92,6 +101,8 @@ def read_capture(root: str | os.PathLike) -> Capture:
     path = root / TRANSFORMS_NAME
     meta = _read_meta(path)
     entries = [(path, meta, index, frame) for index, frame in enumerate(meta["frames"])]
+    splits.check_listed_once([(path, f"frames[{index}].file_path", frame["file_path"])
+                              for path, _, index, frame in entries])
     names = [frame["file_path"] for _, _, _, frame in entries]
     source_splits = _split_keys(meta, names, path)
   else:
@@ -102,7 +113,8 @@ def read_capture(root: str | os.PathLike) -> Capture:
 
   cameras = _read_cameras(entries)
   extension = _extension_block(meta, path)
-  frame = _frame_from_extension(extension, cameras) if "scene_bounds" in extension else None
+  frame = (_frame_from_extension(extension, cameras, path) if "scene_bounds" in extension
+           else None)
   depth_scale = meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE)
   if (isinstance(depth_scale, bool) or not isinstance(depth_scale, (int, float))
       or not 0 < depth_scale < math.inf):
@@ -113,13 +125,15 @@ def read_capture(root: str | os.PathLike) -> Capture:
       root=root,
       cameras=cameras,
       names=tuple(names),
-      files=tuple(_view_files(root, frame_entry, label) for label, frame_entry in zip(
-          _labels(entries, root), (entry[3] for entry in entries))),
+      files=tuple(_view_files(root, entry, label)
+                  for label, entry in zip(_labels(entries, root), entries)),
       source_splits=source_splits,
       frame=frame,
       kind=extension.get("scene_kind"),
       depth_unit_scale=float(depth_scale),
-      file_from_source=_applied_transform(meta, path),
+      file_from_source=(poses_lib.check_similarity(meta["applied_transform"], path,
+                                                   "applied_transform")
+                        if "applied_transform" in meta else np.eye(4)),
       background_color=None if background is None else np.asarray(background, np.float32),
       format="nerfstudio",
   )
@@ -160,7 +174,12 @@ def _split_keys(meta: dict[str, Any], names: list[str], path: Path
 
 def _read_split_files(root: Path):
   """Frames of transforms_{train,val,test}.json, each view once (instant-NGP captures often
-  repeat the test frames as val), and the split the files make."""
+  repeat the test frames as val), and the split the files make.
+
+  Raises:
+    InputError naming both entries: a file listing an image twice, or a training image listed
+    again in the val or test file (it would be evaluated on after being trained on).
+  """
   entries, indices_by_name = [], {}
   split_indices: dict[str, list[int]] = {}
   for split, file_name in SPLIT_FILE_NAMES.items():
@@ -170,26 +189,35 @@ def _read_split_files(root: Path):
         raise InputError("file not found", path)
       continue
     meta = _read_meta(path)
+    splits.check_listed_once([(path, f"frames[{index}].file_path", frame["file_path"])
+                              for index, frame in enumerate(meta["frames"])])
     split_indices[split] = []
     for index, frame in enumerate(meta["frames"]):
       key = splits.name_key(frame["file_path"])
       if key not in indices_by_name:
         indices_by_name[key] = len(entries)
         entries.append((path, meta, index, frame))
+      elif split != "train" and indices_by_name[key] in split_indices["train"]:
+        first_path, _, first_index, _ = entries[indices_by_name[key]]
+        raise InputError(f"{frame['file_path']!r} is also {first_path.name}'s "
+                         f"frames[{first_index}]: a view cannot be both trained on and held "
+                         "out", path, f"frames[{index}].file_path")
       split_indices[split].append(indices_by_name[key])
   evaluation = split_indices.get("test", split_indices.get("val", []))
   return entries, {"train": tuple(split_indices["train"]), "eval": tuple(evaluation)}
 
 
-def _image_path(root: Path, relative: str) -> Path:
-  """The image a `file_path` names; without an extension, the first of IMAGE_SUFFIXES found."""
-  path = root / relative
+def _image_path(root: Path, relative: str, source: Path, field: str) -> Path:
+  """The image a `file_path` names; without an extension, the first of IMAGE_SUFFIXES found.
+  Either must lie inside `root` (`files.contained_path`; `source` and `field` name the entry)."""
+  path = files.contained_path(root, relative, source, field)
   if path.suffix or path.is_file():
     return path
   for suffix in IMAGE_SUFFIXES:
     candidate = path.with_name(path.name + suffix)
     if candidate.is_file():
-      return candidate
+      # The file found may be a symlink leading out of the folder where `path` did not.
+      return files.contained_path(root, candidate, source, field)
   return path
 
 
@@ -200,10 +228,22 @@ def _labels(entries, root: Path) -> list[str]:
           for path, _, index, _ in entries]
 
 
-def _view_files(root: Path, frame: dict[str, Any], label: str) -> ViewFiles:
-  others = {kind: root / frame[key] for kind, key in FILE_KEYS.items()
-            if kind != "image" and isinstance(frame.get(key), str)}
-  return ViewFiles(image=_image_path(root, frame["file_path"]), label=label, **others)
+def _view_files(root: Path, entry, label: str) -> ViewFiles:
+  """One frame's files, each checked to lie inside `root`.
+
+  Args:
+    entry: (path, meta, index, frame): the transforms file, its top level, the frame's index
+      there and the frame.
+  """
+  path, _, index, frame = entry
+  field = lambda key: f"frames[{index}].{key}"
+  others = {}
+  for kind, key in FILE_KEYS.items():
+    if kind == "image" or frame.get(key) is None:
+      continue
+    others[kind] = files.contained_path(root, frame[key], path, field(key))
+  return ViewFiles(image=_image_path(root, frame["file_path"], path, field("file_path")),
+                   label=label, **others)
 
 
 def _read_cameras(entries) -> Cameras:
@@ -258,6 +298,14 @@ def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], prefix: str, path
       raise InputError(f"must be a finite number, got {raw!r}", path, field)
     return float(raw)
 
+  def coefficient(key):
+    raw = number(key, 0.0)
+    if abs(raw) > MAX_DISTORTION_COEFFICIENT:
+      raise InputError(f"distortion coefficient {raw:g} is no real lens's (their coefficients "
+                       f"stay within +-{MAX_DISTORTION_COEFFICIENT:g}); the file is corrupt",
+                       path, value(key)[1])
+    return raw
+
   def pixels(key):
     raw, field = value(key)
     if isinstance(raw, bool) or not isinstance(raw, (int, float)) or raw != int(raw) or raw < 1:
@@ -276,7 +324,7 @@ def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], prefix: str, path
                      value("k4")[1])
   distortion = np.zeros(DISTORTION_SIZE)
   for key, slot in DISTORTION_SLOTS[camera_model].items():
-    distortion[slot] = number(key, 0.0)
+    distortion[slot] = coefficient(key)
   if "transform_matrix" not in frame:
     raise InputError("missing", path, f"{prefix}.transform_matrix")
   return {
@@ -289,19 +337,6 @@ def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], prefix: str, path
       "camera_to_world": poses_lib.check_camera_to_world(
           frame["transform_matrix"], path, f"{prefix}.transform_matrix"),
   }
-
-
-def _applied_transform(meta: dict[str, Any], path: Path) -> np.ndarray:
-  """[4, 4] map from the capture's original frame into the file's frame (identity if absent)."""
-  if "applied_transform" not in meta:
-    return np.eye(4)
-  try:
-    matrix = np.asarray(meta["applied_transform"], np.float64)
-  except (TypeError, ValueError):
-    matrix = None
-  if matrix is None or matrix.shape not in ((3, 4), (4, 4)) or not np.all(np.isfinite(matrix)):
-    raise InputError("must be a finite 3x4 or 4x4 matrix", path, "applied_transform")
-  return np.concatenate([matrix[:3], [[0.0, 0.0, 0.0, 1.0]]])
 
 
 def _extension_block(meta: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -332,9 +367,26 @@ def _extension_block(meta: dict[str, Any], path: Path) -> dict[str, Any]:
   return block
 
 
-def _frame_from_extension(extension: dict[str, Any], cameras: Cameras) -> SceneFrame:
-  """The frame the signerf block fixes: its kind (default bounded), bounds, near and far."""
+def _frame_from_extension(extension: dict[str, Any], cameras: Cameras, path: Path
+                          ) -> SceneFrame:
+  """The frame the signerf block fixes: its kind (default bounded), bounds, near and far.
+
+  Raises:
+    InputError naming `path` and `signerf.scene_bounds`: bounds too small to hold anything
+      (see MIN_BOUNDS_FRACTION).
+  """
   lower, upper = np.asarray(extension["scene_bounds"], np.float64)
+  largest_side = float(np.max(upper - lower))
+  # What the box is measured against: the farthest camera's distance from it and its own
+  # distance from the origin (float32 coordinates lose what is smaller than ~1e-7 of either).
+  reference = max(float(np.max(np.linalg.norm(
+      np.asarray(cameras.positions, np.float64) - (lower + upper) / 2, axis=-1))),
+      float(np.max(np.abs([lower, upper]))))
+  if not largest_side > MIN_BOUNDS_FRACTION * reference:
+    raise InputError(f"the box is degenerate: its largest side {largest_side:.3g} is below "
+                     f"{MIN_BOUNDS_FRACTION:g} of the cameras' distance {reference:.3g} (no "
+                     "scene fits in it; the bounds are in the file's units)", path,
+                     f"{EXTENSION_KEY}.scene_bounds")
   inside_unit_box = np.all(lower >= -1 - 1e-6) and np.all(upper <= 1 + 1e-6)
   world_from_file = np.eye(4) if inside_unit_box else poses_lib.unit_box_similarity(lower, upper)
   scale = poses_lib.similarity_scale(world_from_file)

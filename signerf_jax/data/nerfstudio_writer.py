@@ -12,13 +12,12 @@ normalised frame, so `nerfstudio.read_capture` keeps that frame as it is.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 from signerf_jax.camera import Cameras
 from signerf_jax.data import views
 from signerf_jax.data.dataset import Dataset
@@ -29,7 +28,6 @@ RATIONAL_SLOTS = slice(5, 8)
 # The writer's per-view files: subfolder and suffix per kind of data.
 IMAGE_FOLDER, MASK_FOLDER, DEPTH_FOLDER, OBJECT_MASK_FOLDER = (
     "images", "masks", "depths", "object_masks")
-_WRITTEN_FILE_PATTERN = re.compile(r"frame_\d{5}\.(png|exr)")
 
 
 def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
@@ -38,12 +36,13 @@ def write_nerfstudio(directory: str | os.PathLike, dataset: Dataset, *,
 
   Every file is written atomically. An existing transforms.json is removed first and the new one
   is written last, so an interrupted run leaves no transforms.json that points at a mix of old
-  and new files; stale `frame_*` files of an earlier, larger dataset are removed at the end.
+  and new files; the files of an earlier, larger dataset that the project recorded writing
+  (`ownership`) are removed at the end.
   """
   directory = Path(directory)
   directory.mkdir(parents=True, exist_ok=True)
   transforms_path = directory / TRANSFORMS_NAME
-  transforms_path.unlink(missing_ok=True)
+  ownership.remove_file(transforms_path)
 
   cameras = dataset.cameras
   camera_model = _camera_model(cameras)
@@ -132,8 +131,9 @@ def _signerf_block(dataset: Dataset, provenance: dict[str, Any] | None) -> dict[
 
 
 def _remove_stale_frame_files(directory: Path, keep: set[str]) -> None:
-  """Deletes our own `frame_NNNNN` files that the new transforms.json no longer lists."""
+  """Deletes the per-view files an earlier write recorded (`ownership`) that the new
+  transforms.json no longer lists."""
   for folder in (IMAGE_FOLDER, MASK_FOLDER, DEPTH_FOLDER, OBJECT_MASK_FOLDER):
-    for path in sorted((directory / folder).glob("frame_*")):
-      if _WRITTEN_FILE_PATTERN.fullmatch(path.name) and f"{folder}/{path.name}" not in keep:
-        path.unlink()
+    for path in ownership.written_files(directory / folder):
+      if path.relative_to(directory).as_posix() not in keep:
+        ownership.remove_file(path)

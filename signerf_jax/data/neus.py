@@ -16,8 +16,9 @@ black-and-white silhouettes (a first channel above 0.5 is the object, id 1). Ima
 PNG (as NeuS reads them) or JPEG.
 
 Each projection is decomposed with cv2.decomposeProjectionMatrix. P is defined up to scale,
-sign included: the sign with det(P[:, :3]) > 0 is the one whose K has positive focal lengths
-with R a proper rotation, so it is taken before decomposing.
+sign included: it is divided by its largest entry (so any finite scale, 1e300 or 1e-300, reads
+the same cameras), and the sign with det(P[:, :3]) > 0 is the one whose K has positive focal
+lengths with R a proper rotation, so it is taken before decomposing.
 """
 
 from __future__ import annotations
@@ -143,17 +144,31 @@ def _check_world_mat_keys(arrays: dict[str, np.ndarray], count: int, path: Path)
 
 def _matrix(value: np.ndarray, shapes: tuple[tuple[int, int], ...], path: Path,
             key: str) -> np.ndarray:
-  """A finite float64 matrix of one of `shapes` (a 4x4 one with the last row [0, 0, 0, 1])."""
-  try:
-    matrix = np.asarray(value, np.float64)
-  except (TypeError, ValueError):
-    matrix = None
-  if matrix is None or matrix.shape not in shapes or not np.all(np.isfinite(matrix)):
+  """A finite float64 matrix of one of `shapes`.
+
+  A 4x4 matrix is homogeneous: its last row must be [0, 0, 0, w] with w != 0 (NeuS and IDR
+  write w = 1), and it is returned divided by w, the same map (a world_mat scaled as a whole is
+  the same projection; a scale_mat with w = 2 halves what it maps).
+  """
+  value = np.asarray(value)
+  # Real numbers only: a cast would drop a complex matrix's imaginary parts (with a mere
+  # warning) or read text such as "1.5" as a number.
+  if value.dtype.kind not in "fiu":
+    raise InputError(f"must hold real numbers, got dtype {value.dtype}", path, key)
+  matrix = value.astype(np.float64)
+  if matrix.shape not in shapes or not np.all(np.isfinite(matrix)):
     expected = " or ".join(f"{rows}x{columns}" for rows, columns in shapes)
-    raise InputError(f"must be a finite {expected} matrix, got "
-                     f"{getattr(matrix, 'shape', repr(value))}", path, key)
-  if matrix.shape == (4, 4) and not np.allclose(matrix[3], [0, 0, 0, 1]):
-    raise InputError(f"last row must be [0, 0, 0, 1], got {matrix[3].tolist()}", path, key)
+    raise InputError(f"must be a finite {expected} matrix, got shape {matrix.shape}", path,
+                     key)
+  if matrix.shape == (4, 4):
+    last_row = matrix[3]
+    if last_row[3] == 0 or not np.allclose(last_row[:3] / last_row[3], 0):
+      raise InputError(f"last row must be [0, 0, 0, 1] (or a multiple), got {last_row.tolist()}",
+                       path, key)
+    matrix = matrix / last_row[3]
+    matrix[3] = [0, 0, 0, 1]
+    if not np.all(np.isfinite(matrix)):
+      raise InputError(f"overflows once divided by its last row's {last_row[3]:.3g}", path, key)
   return matrix
 
 
@@ -161,6 +176,13 @@ def _decompose(world_mat: np.ndarray, height: int, path: Path, key: str):
   """One projection's OpenGL camera-to-world [3, 4] and intrinsics (fx, fy, cx, cy) in this
   project's pixel convention, for images `height` pixels high."""
   projection = _matrix(world_mat, ((3, 4), (4, 4)), path, key)[:3]
+  # P is defined up to scale: dividing by its largest entry first lets a projection scaled by
+  # 1e300 (or 1e-300) decompose like any other instead of overflowing (underflowing) the
+  # determinant below, which would call it singular.
+  largest = np.max(np.abs(projection))
+  if largest == 0:
+    raise InputError("is all zeros: not a camera projection K [R | t]", path, key)
+  projection = projection / largest
   determinant = np.linalg.det(projection[:, :3])
   if abs(determinant) <= SINGULAR_TOLERANCE * np.prod(np.linalg.norm(projection[:, :3], axis=1)):
     raise InputError("is singular: not a camera projection K [R | t]", path, key)
@@ -195,10 +217,15 @@ def _object_sphere(arrays: dict[str, np.ndarray], count: int, path: Path):
     if key in arrays and not np.allclose(_matrix(arrays[key], ((4, 4),), path, key), scale_mat):
       raise InputError("differs from scale_mat_0: NeuS's normalised frame (and the object's "
                        "sphere) is one for all views", path, key)
-  linear = scale_mat[:3, :3]
-  radius = np.cbrt(np.linalg.det(linear))
-  if not radius > 0 or np.max(np.abs(linear.T @ linear - radius**2 * np.eye(3))) > (
-      SIMILARITY_TOLERANCE * radius**2):
+  # Tested on the linear part divided by its largest entry: the determinant of a similarity
+  # scaled by 1e300 would overflow (and one scaled by 1e-300 underflow) unnormalised.
+  largest = np.max(np.abs(scale_mat[:3, :3]))
+  linear = scale_mat[:3, :3] / largest if largest > 0 else scale_mat[:3, :3]
+  unit_radius = np.cbrt(np.linalg.det(linear))
+  radius = unit_radius * largest
+  deviation = np.max(np.abs(linear.T @ linear - unit_radius**2 * np.eye(3)))
+  if not (unit_radius > 0 and 0 < radius < np.inf
+          and deviation <= SIMILARITY_TOLERANCE * unit_radius**2):
     raise InputError("must be a similarity (uniform positive scale, rotation, translation), got "
                      f"{scale_mat.tolist()}", path, "scale_mat_0")
   return scale_mat[:3, 3].copy(), float(radius)

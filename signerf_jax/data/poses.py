@@ -9,6 +9,7 @@ coordinates (a proxy mesh, a box) can be mapped into the scene: x_world = world_
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +19,11 @@ from signerf_jax.errors import InputError
 # A pose whose rotation deviates this much from orthonormal is not a rigid camera: it would shear
 # or scale rays, which the ray generator silently assumes away.
 ROTATION_TOLERANCE = 1e-3
+# Camera coordinates beyond this (in the source's units) are refused. Real captures stay far
+# below: Earth-centred coordinates are under 6.4e6 metres (6.4e9 in millimetres). Larger values
+# are corrupt files, and they break the arithmetic that follows: cameras are stored as float32
+# (1e39 is infinite there) and squared distances overflow from ~1e19.
+MAX_CAMERA_COORDINATE = 1e10
 
 
 def check_camera_to_world(matrix, path: str | os.PathLike, field: str) -> np.ndarray:
@@ -29,8 +35,9 @@ def check_camera_to_world(matrix, path: str | os.PathLike, field: str) -> np.nda
   Returns:
     [3, 4] float64 [R | t].
   Raises:
-    InputError: wrong shape, non-numeric or non-finite entries, or a rotation that is not proper
-      (orthonormal within ROTATION_TOLERANCE with determinant +1).
+    InputError: wrong shape, non-numeric or non-finite entries, a position beyond
+      MAX_CAMERA_COORDINATE, or a rotation that is not proper (orthonormal within
+      ROTATION_TOLERANCE with determinant +1).
   """
   try:
     pose = np.asarray(matrix, np.float64)
@@ -40,6 +47,11 @@ def check_camera_to_world(matrix, path: str | os.PathLike, field: str) -> np.nda
     raise InputError(f"must be a 3x4 or 4x4 matrix, got shape {pose.shape}", path, field)
   if not np.all(np.isfinite(pose)):
     raise InputError("contains non-finite values", path, field)
+  position = pose[:3, 3]
+  if np.max(np.abs(position)) > MAX_CAMERA_COORDINATE:
+    raise InputError(f"camera position {position.tolist()} has a coordinate beyond "
+                     f"{MAX_CAMERA_COORDINATE:g}: no capture places a camera that far (a corrupt "
+                     "pose)", path, field)
   if pose.shape == (4, 4) and np.max(np.abs(pose[3] - [0, 0, 0, 1])) > ROTATION_TOLERANCE:
     raise InputError(f"last row must be [0, 0, 0, 1], got {pose[3].tolist()}", path, field)
   rotation = pose[:3, :3]
@@ -181,3 +193,38 @@ def near_far_for_box(cameras: Cameras, lower, upper) -> tuple[float, float]:
   outside = np.maximum(np.maximum(lower - positions, positions - upper), 0.0)
   near = float(np.min(np.linalg.norm(outside, axis=-1)))
   return max(near, 1e-3 * far), far
+
+
+def check_similarity(value: Any, path: str | os.PathLike, field: str) -> np.ndarray:
+  """`value` (a 3x4 or 4x4 matrix read from `path`) as a [4, 4] similarity: a rotation, a uniform
+  positive scale and a translation, as a capture's frame change (nerfstudio's
+  `applied_transform`) must be, since positions and sizes are converted through it and its
+  inverse.
+
+  Raises:
+    InputError naming `path` and `field`: not a finite matrix, singular, a reflection, shearing
+      or scaling unevenly.
+  """
+  try:
+    matrix = np.asarray(value, np.float64)
+  except (TypeError, ValueError):
+    matrix = None
+  if matrix is None or matrix.shape not in ((3, 4), (4, 4)) or not np.all(np.isfinite(matrix)):
+    raise InputError("must be a finite 3x4 or 4x4 matrix", path, field)
+  if matrix.shape == (4, 4) and np.max(np.abs(matrix[3] - [0, 0, 0, 1])) > 1e-9:
+    raise InputError(f"last row must be [0, 0, 0, 1], got {matrix[3].tolist()}", path, field)
+  linear = matrix[:3, :3]
+  determinant = np.linalg.det(linear)
+  # Relative to the columns' size, so a scaled rotation is judged like the rotation.
+  size = max(float(np.max(np.abs(linear))), np.finfo(np.float64).tiny)
+  if not determinant / size**3 > ROTATION_TOLERANCE:
+    raise InputError(f"is singular or a reflection (determinant {determinant:.3g} of its 3x3 "
+                     "part): it must be a rotation, uniform scale and translation",
+                     path, field)
+  rotation = linear / np.cbrt(determinant)
+  deviation = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
+  if deviation > ROTATION_TOLERANCE:
+    raise InputError(f"its 3x3 part shears or scales unevenly (|R^T R - I| = {deviation:.2g} "
+                     "after removing the scale): it must be a rotation, uniform scale and "
+                     "translation", path, field)
+  return np.concatenate([matrix[:3], [[0.0, 0.0, 0.0, 1.0]]])

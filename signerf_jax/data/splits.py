@@ -12,6 +12,7 @@ source that lists a view in both is an error.
 
 from __future__ import annotations
 
+import os
 from pathlib import PurePosixPath
 from typing import Sequence
 
@@ -85,10 +86,11 @@ def select_views(names: Sequence[str], split: str, *,
   everything = np.arange(count)
   if split == "all":
     return everything
+  from_source = not held_out and eval_every is None and source_splits is not None
   if held_out:
     evaluation = match_names(names, held_out, path)
     training = np.setdiff1d(everything, evaluation)
-  elif eval_every is not None or source_splits is None:
+  elif not from_source:
     period = DEFAULT_EVAL_EVERY if eval_every is None else eval_every
     if isinstance(period, bool) or not isinstance(period, (int, np.integer)) or period < 2:
       raise InputError(f"must be a whole number of at least 2, got {period!r}",
@@ -103,7 +105,32 @@ def select_views(names: Sequence[str], split: str, *,
       raise InputError(f"{both.size} views are listed for both training and evaluation, e.g. "
                        f"{names[int(both[0])]!r}", path, "train_filenames")
   chosen = training if split == "train" else evaluation
+  if chosen.size == 0 and from_source:
+    # No eval_every was given: blaming it would send the user after a flag they never set.
+    raise InputError(f"the {split} split is empty: the dataset's own split puts none of its "
+                     f"{count} views in it; choose views to hold out with eval_every or "
+                     "held_out", path)
   if chosen.size == 0:
     raise InputError(f"the {split} split is empty ({count} views; the hold-out leaves none)",
                      path, "held_out" if held_out else "eval_every")
   return chosen
+
+
+def check_listed_once(listed: Sequence[tuple[str | os.PathLike, str, str]]) -> None:
+  """Refuses an image listed twice, as the same path or spelt differently (`./images/a.png`,
+  `images/a`): the view would count twice, and split keys, which name views by their path,
+  could not tell the two entries apart.
+
+  Args:
+    listed: (file, entry, image path) of each listed image, e.g. (transforms.json,
+      "frames[3].file_path", "images/a.png").
+  Raises:
+    InputError naming the file and the second entry, and the first.
+  """
+  first_entry = {}
+  for path, field, name in listed:
+    key = name_key(name)
+    if key in first_entry:
+      raise InputError(f"{name!r} names the same image as {first_entry[key]}; list each view "
+                       "once", path, field)
+    first_entry[key] = field

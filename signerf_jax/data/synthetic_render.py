@@ -19,8 +19,7 @@ from typing import Annotated, Literal
 import jax
 import numpy as np
 
-from signerf_jax import camera, validation
-from signerf_jax import files
+from signerf_jax import camera, files, ownership, validation
 from signerf_jax.data import nerfstudio, nerfstudio_writer
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data import raycast
@@ -175,7 +174,8 @@ def generate(directory: str | os.PathLike, seed: int = 0,
   """Makes, renders and writes a synthetic scene to `directory`.
 
   Args:
-    directory: the output dataset directory.
+    directory: the output dataset directory: new, empty, or a dataset signerf wrote (never a
+      folder of files it did not write, such as a capture: `ownership`).
     seed: the scene's random seed.
     settings, rig: what to build and how to view it.
   Writes transforms.json with images/, depths/ (EXR z-depth) and object_masks/ (id PNGs), and
@@ -183,6 +183,7 @@ def generate(directory: str | os.PathLike, seed: int = 0,
   (before 8-bit quantisation) and the scene.
   """
   directory = Path(directory)
+  ownership.check_claimable(directory, ownership.DATASET)  # Before the rendering's work.
   scene = make_scene(seed, settings)
   cameras = make_cameras(rig, scene.scene_bounds)
   images, depths, object_ids = render(scene, cameras)
@@ -194,12 +195,13 @@ def generate(directory: str | os.PathLike, seed: int = 0,
       scene_bounds=scene.scene_bounds.astype(np.float32), scene_kind="bounded", near=near,
       far=far, background_color=scene.background_color.astype(np.float32), depths=depths,
       extras={"object_masks": object_ids}, root=str(directory))
-  # The old transforms.json goes first: scene.json must never sit beside a stale dataset.
-  (directory / nerfstudio.TRANSFORMS_NAME).unlink(missing_ok=True)
   description = scene.describe()
   description["generator"] = {"seed": seed, "scene": dataclasses.asdict(settings),
                               "cameras": dataclasses.asdict(rig)}
-  files.write_json(directory / SCENE_FILE_NAME, description)
-  nerfstudio_writer.write_nerfstudio(directory, dataset, provenance={
-      "generator": GENERATOR_NAME, "seed": seed, "scene": SCENE_FILE_NAME})
+  with ownership.claimed(directory, ownership.DATASET):
+    # The old transforms.json goes first: scene.json must never sit beside a stale dataset.
+    ownership.remove_file(directory / nerfstudio.TRANSFORMS_NAME)
+    files.write_json(directory / SCENE_FILE_NAME, description)
+    nerfstudio_writer.write_nerfstudio(directory, dataset, provenance={
+        "generator": GENERATOR_NAME, "seed": seed, "scene": SCENE_FILE_NAME})
   return dataset, scene

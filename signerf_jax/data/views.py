@@ -12,6 +12,7 @@ import numpy as np
 from signerf_jax import files
 from signerf_jax.errors import InputError
 
+
 def read_color_and_alpha(path: str | os.PathLike, background_color) -> np.ndarray:
   """[H, W, 4] float32 in [0, 1]: the RGB image, RGBA composited on `background_color` ([3]),
   and its opacity (1 for images without alpha).
@@ -116,5 +117,9 @@ def prepared_downscale_path(root: Path, relative_path: str, factor: int) -> Path
   parts = Path(relative_path).parts
   if factor == 1 or len(parts) < 2:
     return None
-  candidate = root.joinpath(f"{parts[0]}_{factor}", *parts[1:])
-  return candidate if candidate.is_file() else None
+  folder = f"{parts[0]}_{factor}"
+  candidate = root.joinpath(folder, *parts[1:])
+  if not candidate.is_file():
+    return None
+  # The copy is read instead of the file the dataset names: it must stay inside as well.
+  return files.contained_path(root, candidate.relative_to(root), root, folder)

@@ -10,8 +10,8 @@ writes
   scheduler/scheduler_config.json   the training noise schedule.
 Tensors get diffusers' / transformers' names and torch layouts (`weights.reference_name`,
 `weights.to_reference_layout`, `clip_text.tensors_from_params`), stored in `dtype` (float16 by
-default: half the size, and the loaders convert exactly back to float32). The directory is built
-next to its destination and swapped in whole, so a reader never sees half of one.
+default: half the size, and the loaders convert exactly back to float32). Each file is written
+atomically in place; nothing else in the directory (a model card, the user's notes) is touched.
 
 `load_checkpoint` reads it back through the same component loaders any diffusers checkpoint goes
 through (`load_vae`, `load_unet`, `load_controlnet`, `load_text_encoder`, `load_tokenizer`,
@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -83,7 +81,7 @@ def _write_safetensors(path: Path, tensors: dict[str, np.ndarray]) -> None:
 def write_checkpoint(directory: str | os.PathLike, architecture: model_lib.Architecture,
                      params: dict[str, Any], tokenizer: word_tokenizer.WordTokenizer,
                      dtype=np.float16) -> dict[str, int]:
-  """Writes the checkpoint (module docstring) in place of `directory`.
+  """Writes the checkpoint (module docstring) into `directory`.
 
   Args:
     params: {"vae", "unet", "controlnet", "text_encoder"} Flax parameters.
@@ -91,33 +89,20 @@ def write_checkpoint(directory: str | os.PathLike, architecture: model_lib.Archi
     {component: bytes on disk} for every component folder and "total".
   """
   directory = Path(directory)
-  directory.parent.mkdir(parents=True, exist_ok=True)
-  building = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}."))
-  try:
-    files.write_json(building / "model_index.json", model_index(architecture))
-    for name, config in (("vae", architecture.vae_config()), ("unet", architecture.unet_config()),
-                         ("controlnet", architecture.controlnet_config())):
-      files.write_json(building / name / "config.json", config)
-      _write_safetensors(building / name / DIFFUSERS_WEIGHTS, diffusers_tensors(params[name], dtype))
-    text_config = architecture.text_encoder_config(tokenizer.vocab_size)
-    files.write_json(building / "text_encoder" / "config.json", text_config)
-    text_tensors = clip_text.tensors_from_params(
-        clip_text.CLIPTextConfig.from_dict(text_config), params["text_encoder"])
-    _write_safetensors(building / "text_encoder" / TRANSFORMERS_WEIGHTS,
-                       {name: tensor.astype(dtype) for name, tensor in text_tensors.items()})
-    tokenizer.save(building / "tokenizer")
-    files.write_json(building / "scheduler" / "scheduler_config.json",
-                     architecture.scheduler_config())
-    os.chmod(building, 0o755)  # mkdtemp makes it private.
-    previous = directory.with_name(f".{directory.name}.previous")
-    if directory.exists():
-      shutil.rmtree(previous, ignore_errors=True)
-      os.replace(directory, previous)
-    os.replace(building, directory)
-    shutil.rmtree(previous, ignore_errors=True)
-  except BaseException:
-    shutil.rmtree(building, ignore_errors=True)
-    raise
+  files.write_json(directory / "model_index.json", model_index(architecture))
+  for name, config in (("vae", architecture.vae_config()), ("unet", architecture.unet_config()),
+                       ("controlnet", architecture.controlnet_config())):
+    files.write_json(directory / name / "config.json", config)
+    _write_safetensors(directory / name / DIFFUSERS_WEIGHTS, diffusers_tensors(params[name], dtype))
+  text_config = architecture.text_encoder_config(tokenizer.vocab_size)
+  files.write_json(directory / "text_encoder" / "config.json", text_config)
+  text_tensors = clip_text.tensors_from_params(
+      clip_text.CLIPTextConfig.from_dict(text_config), params["text_encoder"])
+  _write_safetensors(directory / "text_encoder" / TRANSFORMERS_WEIGHTS,
+                     {name: tensor.astype(dtype) for name, tensor in text_tensors.items()})
+  tokenizer.save(directory / "tokenizer")
+  files.write_json(directory / "scheduler" / "scheduler_config.json",
+                   architecture.scheduler_config())
   sizes = {folder.name: sum(path.stat().st_size for path in folder.rglob("*") if path.is_file())
            for folder in sorted(directory.iterdir()) if folder.is_dir()}
   sizes["total"] = sum(path.stat().st_size for path in directory.rglob("*") if path.is_file())

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from signerf_jax import validation
+from signerf_jax import safetensors_io, validation
 from signerf_jax.clip import text as clip_text
 from signerf_jax.clip.tokenizer import Tokenizer, load_tokenizer
 from signerf_jax.diffusion import guidance as guidance_lib
@@ -149,6 +149,7 @@ def check_pipeline(path: str | os.PathLike, *, controlnet: str | os.PathLike | N
     directory = model_configs.component_directory(components.require(name), name)
     configs[name] = parser.from_dict(model_configs.read_config(directory),
                                      directory / "config.json")
+    safetensors_io.find_weight_files(directory)  # Found, and a shard index's entries inside it.
   sdxl = configs["unet"].addition_embed_type == "text_time"
   tokenizers = tuple(load_tokenizer(components.require(name))
                      for name in (("tokenizer_2",) if sdxl else ("tokenizer",)))

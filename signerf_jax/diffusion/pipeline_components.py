@@ -43,7 +43,10 @@ def _read_model_index(path: Path) -> tuple[dict[str, Path], dict[str, Any]]:
       options[name] = value
     elif len(value) != 2:
       raise InputError(f"expected [library, class], got {value!r}", index_path, name)
-    elif value[1] is not None:
+    elif value[1] is not None and name in COMPONENTS:
+      # Only the fixed COMPONENTS names become folders: an entry's key is never used as a path
+      # (a key such as "../../elsewhere" would otherwise name a folder outside the pipeline),
+      # and the components this project does not use (safety_checker, ...) are not read.
       components[name] = path / name
   return components, options
 

@@ -50,6 +50,8 @@ SchedulerOverride = Literal["", "ddim", "dpm_solver_multistep", "euler_ancestral
 PRIMITIVE_PREFIX = "primitive:"
 # The NeRF runs of an edit, each with its own TrainConfig (gin scope of the same name).
 TRAINING_RUNS = ("original", "finetune", "retrain")
+# The gin scopes of the first and second iteration's GenerationOptions (`EditSettings.generation`).
+GENERATION_SCOPES = ("first_iteration", "second_iteration")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Annotated, Any
 
-from signerf_jax import configs, files, validation
+from signerf_jax import configs, files, ownership, validation
 from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.editing import commands
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR, PRIMITIVE_PREFIX
@@ -49,7 +49,9 @@ class DemoSettings(validation.CheckedFields):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--out", default="outputs/demo", help="output directory (resumed)")
+  parser.add_argument("--out", default="outputs/demo",
+                      help="output directory: new or empty, or an earlier demo's (resumed); "
+                      "writes scene/ (the synthetic scene) and edit/ (the edit) there")
   parser.add_argument("--prompt", help="what to insert (default: demo.prompt, 'a red cow')")
   parser.add_argument("--model", help="a diffusers ControlNet inpainting pipeline directory "
                       "(default: the shipped model)")
@@ -103,11 +105,12 @@ def run(args: argparse.Namespace) -> int:
   settings = configs.build(DemoSettings)
   model = model_directory(args.model)
   scene_dir = out / "scene"
-  scene = ensure_scene(scene_dir, settings.scene_seed)
-  prompt = args.prompt or settings.prompt
-  bindings = edit_bindings(scene_dir, scene, settings, prompt, model)
-  configs.parse_gin(gin_files, bindings + list(args.gin_param))
-  edit = commands.run_command("demo", out / "edit", progress=not args.quiet)
+  with ownership.claimed(out, ownership.DEMO):
+    scene = ensure_scene(scene_dir, settings.scene_seed)
+    prompt = args.prompt or settings.prompt
+    bindings = edit_bindings(scene_dir, scene, settings, prompt, model)
+    configs.parse_gin(gin_files, bindings + list(args.gin_param))
+    edit = commands.run_command("demo", out / "edit", progress=not args.quiet)
   evaluation = edit.directory.path("evaluation")
   metrics = files.read_json(evaluation / "metrics.json")
   video = [path for path in (evaluation / "before_after.mp4", evaluation / "before_after.avi")

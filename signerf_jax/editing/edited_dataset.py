@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 from signerf_jax.data import nerfstudio, nerfstudio_writer
 from signerf_jax.data.dataset import Dataset
 
@@ -45,7 +45,7 @@ def write_edited_dataset(directory: str | os.PathLike, source: Dataset, edited_i
     provenance: the record stored in transforms.json.
   """
   directory = Path(directory)
-  (directory / nerfstudio.TRANSFORMS_NAME).unlink(missing_ok=True)
+  ownership.remove_file(directory / nerfstudio.TRANSFORMS_NAME)
   for index in range(source.num_images):
     name = f"frame_{index:05d}"
     files.write_image(directory / EXTRA_FOLDERS["originals"] / f"{name}.png", source.images[index])

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from signerf_jax import camera, checkpoints
+from signerf_jax import camera, checkpoints, ownership
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import lpips
@@ -233,15 +233,15 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
                        f"{min(dataset.height, dataset.width)}, got {size}",
                        field="FinetuneConfig.patch_size")
   run_dir = Path(run_dir)
-  run_dir.mkdir(parents=True, exist_ok=True)
   trainer = FinetuneTrainer(model, config, training_data.TrainingData.from_dataset(dataset),
                             train.init_state(model, config, init_variables),
                             loss_settings=loss_settings, lpips_params=lpips_params,
                             editable_cells=None if edited_bounds is None
                             else region_cells(model, edited_bounds))
-  if checkpoints.has_checkpoint(run_dir):
-    trainer.restore(run_dir)
-  else:
-    training_run.write_model_file(run_dir, model, dataset, data_options)
-  trainer.run(run_dir=run_dir, progress=progress)
+  with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", dataset.root),)):
+    if checkpoints.has_checkpoint(run_dir):
+      trainer.restore(run_dir)
+    else:
+      training_run.write_model_file(run_dir, model, dataset, data_options)
+    trainer.run(run_dir=run_dir, progress=progress)
   return trainer

@@ -25,81 +25,8 @@ import numpy as np
 
 from signerf_jax import validation
 from signerf_jax.errors import InputError
-from signerf_jax.nerf.perspective_warp import PerspectiveWarp
+from signerf_jax.nerf.scene_info import SceneInfo, check_scene
 from signerf_jax.validation import PositiveFloat, PositiveInt, Range
-
-
-def camera_distances(bounds, cameras) -> np.ndarray:
-  """[N] distances (scene units) of the cameras to the centre of `bounds` ([2, 3] min, max)."""
-  centre = np.mean(np.asarray(bounds, np.float64), axis=0)
-  return np.linalg.norm(np.asarray(cameras.positions, np.float64) - centre, axis=-1)
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneInfo:
-  """What the model must know about a scene (JSON-friendly; saved in every run directory).
-
-  Attributes:
-    bounds: ((x, y, z) min, (x, y, z) max) region modelled in detail, scene units.
-    kind: "bounded", "forward_facing" or "unbounded" (see `Dataset`).
-    near, far: ray range in scene units.
-    background_color: RGB seen through empty space in bounded scenes, or None.
-    num_images: training images (for appearance embeddings).
-    width, height: training image size in pixels.
-    pixel_footprint: scene units one pixel spans at the typical camera-to-scene distance.
-    camera_distance: the cameras' median distance to the centre of the bounds (scene units).
-    perspective: forward-facing scenes' field-coordinate warp; None for the others.
-  """
-
-  bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
-  kind: str
-  near: float
-  far: float
-  background_color: tuple[float, float, float] | None
-  num_images: int
-  width: int
-  height: int
-  pixel_footprint: float
-  camera_distance: float
-  perspective: PerspectiveWarp | None = None
-
-  @classmethod
-  def from_dataset(cls, dataset) -> "SceneInfo":
-    bounds = np.asarray(dataset.scene_bounds, np.float64)
-    cameras = dataset.cameras
-    distances = camera_distances(bounds, cameras)
-    focal = np.asarray(cameras.fx, np.float64)
-    background = dataset.background_color
-    return cls(
-        bounds=(tuple(map(float, bounds[0])), tuple(map(float, bounds[1]))),
-        kind=dataset.scene_kind,
-        near=float(dataset.near),
-        far=float(dataset.far),
-        background_color=None if background is None else tuple(map(float, background)),
-        num_images=int(dataset.num_images),
-        width=int(dataset.width),
-        height=int(dataset.height),
-        pixel_footprint=float(np.median(distances / focal)),
-        camera_distance=float(np.median(distances)),
-        perspective=(PerspectiveWarp.from_cameras(cameras, float(dataset.near),
-                                                  float(dataset.far))
-                     if dataset.scene_kind == "forward_facing" else None),
-    )
-
-  @classmethod
-  def from_json(cls, value: Mapping[str, Any]) -> "SceneInfo":
-    value = dict(value)
-    value["bounds"] = tuple(tuple(map(float, corner)) for corner in value["bounds"])
-    if value["background_color"] is not None:
-      value["background_color"] = tuple(value["background_color"])
-    if value.get("perspective") is not None:
-      value["perspective"] = PerspectiveWarp.from_json(value["perspective"])
-    return cls(**value)
-
-  @property
-  def extent(self) -> float:
-    """Largest side of the bounds."""
-    return float(np.max(np.subtract(self.bounds[1], self.bounds[0])))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -317,11 +244,9 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
     scene: the scene's geometry and image size.
     rules: the knobs of the derivation (see `CapacityRules`).
   Raises:
-    InputError: the scene's pixel footprint is not positive.
+    InputError: the scene's bounds, pixel footprint or camera distance (`check_scene`).
   """
-  if scene.pixel_footprint <= 0 or not math.isfinite(scene.pixel_footprint):
-    raise InputError(f"pixel footprint {scene.pixel_footprint} is not positive", None,
-                     "pixel_footprint")
+  check_scene(scene)
   bounded = scene.kind == "bounded"
   contract = scene.kind == "unbounded"
   finest, num_levels, log2_table_size = _grid_sizes(scene, rules)

@@ -18,7 +18,7 @@ from signerf_jax.metrics import image as image_metrics
 from signerf_jax.metrics import lpips
 from signerf_jax.nerf import render, train, training_run
 from signerf_jax.nerf import model as nerf_model
-from signerf_jax.nerf.capacity import camera_distances
+from signerf_jax.nerf.scene_info import camera_distances
 
 # Near-camera floaters: render weight nearer than this fraction of the scene radius.
 NEAR_CAMERA_FRACTION = 0.05
@@ -60,8 +60,9 @@ def scene_radius(model: nerf_model.NerfModel, cameras) -> float:
   return float(np.median(camera_distances(model.scene.bounds, cameras)))
 
 
-def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset, chunk_size: int = 4096,
-             lpips_params=None, near_camera_fraction: float = NEAR_CAMERA_FRACTION,
+def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset,
+             chunk_size: int = render.DEFAULT_CHUNK_SIZE, lpips_params=None,
+             near_camera_fraction: float = NEAR_CAMERA_FRACTION,
              supersampling: int | None = None
              ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
   """Renders every view of `dataset` and compares it with the images (and depths).
@@ -119,8 +120,8 @@ def training_views(dataset: Dataset, count: int = TRAIN_VIEWS_EVALUATED) -> Data
 
 
 def generalisation_report(model: nerf_model.NerfModel, variables, held_out: Dataset,
-                          training: Dataset, chunk_size: int = 4096, lpips_params=None,
-                          renders_dir: str | os.PathLike | None = None,
+                          training: Dataset, chunk_size: int = render.DEFAULT_CHUNK_SIZE,
+                          lpips_params=None, renders_dir: str | os.PathLike | None = None,
                           supersampling: int | None = None
                           ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
   """Held-out metrics, train-view metrics and the gap between them.

@@ -30,7 +30,8 @@ from flax import struct
 from signerf_jax.camera import Rays
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import occupancy, ray_samples, sampling, volume
-from signerf_jax.nerf.capacity import Capacity, SceneInfo
+from signerf_jax.nerf.capacity import Capacity
+from signerf_jax.nerf.scene_info import SceneInfo
 from signerf_jax.nerf.encoding import grid_layout
 from signerf_jax.nerf.fields import DensityField, RadianceField
 

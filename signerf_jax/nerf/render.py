@@ -24,6 +24,16 @@ IMAGE_OUTPUTS = ("rgb", "accumulation", "depth", "median_depth", "distance", "ne
 # A box nothing is inside (its low corner above its high one): no selection weight.
 NO_BOX = np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]], np.float32)
 
+# Rays rendered at once by default (`--chunk_size`). A chunk is never padded beyond this or the
+# rays there are: one compiled shape serves every smaller ray count (masks of any size), and a
+# chunk size above the ray count allocates no more than those rays.
+DEFAULT_CHUNK_SIZE = 4096
+# Bytes each ray of a chunk holds at the least, whatever the model: the padded rays on the host
+# and on the device (origins and directions, 3 float32 each, the cosine, the camera index), and
+# the outputs on the device and copied back (rgb's 3 float32 and 6 more). The samples along the
+# rays take far more, on the device.
+CHUNK_BYTES_PER_RAY = 2 * (3 + 3 + 1 + 1) * 4 + 2 * (3 + len(IMAGE_OUTPUTS) - 1) * 4
+
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def _render_chunk(model: nerf_model.NerfModel, variables, chunk: camera.Rays, near_distance,
@@ -67,14 +77,64 @@ def _occupied_march(model: nerf_model.NerfModel, variables):
 image_rays = jax.jit(camera.image_rays)
 
 
+def physical_memory() -> int | None:
+  """This machine's memory in bytes (None where the system does not say)."""
+  try:
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+  except (AttributeError, OSError, ValueError):
+    return None
+
+
+def _size_text(size: float) -> str:
+  """`size` bytes in binary units: "109.1 TiB"."""
+  for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+    if size < 1024 or unit == "PiB":
+      return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
+    size /= 1024
+  raise AssertionError("unreachable")
+
+
+def _check_positive(value, field: str) -> None:
+  if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+    raise InputError(f"must be a positive integer, got {value!r}", field=field)
+
+
+def check_chunk_size(chunk_size: int, field: str = "chunk_size",
+                     memory: int | None = None) -> None:
+  """Refuses a chunk size that is not a positive integer or whose buffers cannot fit in this
+  machine's memory (`memory` bytes; default `physical_memory`), before anything is allocated:
+  numpy would otherwise fail on its first chunk with "Unable to allocate 109. TiB".
+
+  Raises:
+    InputError naming `field` (a command passes its flag, "--chunk_size"), the value, the
+    memory it would need at the least (`CHUNK_BYTES_PER_RAY`) and the memory there is.
+  """
+  _check_positive(chunk_size, field)
+  memory = physical_memory() if memory is None else memory
+  needed = int(chunk_size) * CHUNK_BYTES_PER_RAY
+  if memory is not None and needed > memory:
+    raise InputError(
+        f"{chunk_size} rays at once need at least {_size_text(needed)} of memory "
+        f"({CHUNK_BYTES_PER_RAY} bytes a ray for the rays and their outputs alone), more than "
+        f"this machine's {_size_text(memory)}; the default is {DEFAULT_CHUNK_SIZE}",
+        field=field)
+
+
 def render_chunks(model: nerf_model.NerfModel, variables, rays: camera.Rays,
-                  chunk_size: int = 4096, near_distance: float = 0.0, selection_box=None
-                  ) -> Iterator[dict[str, np.ndarray]]:
+                  chunk_size: int = DEFAULT_CHUNK_SIZE, near_distance: float = 0.0,
+                  selection_box=None) -> Iterator[dict[str, np.ndarray]]:
   """Renders flat rays [R] chunk by chunk, yielding each chunk's outputs as numpy arrays [C]
   (the last chunk padded by repeating the last ray, and cut back): a caller that stops
-  iterating stops the work, as the viewer does when its camera moves. See
-  `render_rays_chunked` for the arguments and outputs."""
+  iterating stops the work, as the viewer does when its camera moves. A chunk holds at most
+  max(R, DEFAULT_CHUNK_SIZE) rays whatever `chunk_size`. See `render_rays_chunked` for the
+  arguments and outputs.
+
+  Raises:
+    InputError: `chunk_size` is not a positive integer.
+  """
   count = rays.shape[0]
+  _check_positive(chunk_size, "chunk_size")
+  chunk_size = min(int(chunk_size), max(count, DEFAULT_CHUNK_SIZE))
   rays = jax.device_get(rays)  # Sliced on the host: no compilation per chunk position.
   near_distance = jnp.float32(near_distance)
   box = jnp.asarray(NO_BOX if selection_box is None else selection_box, jnp.float32)
@@ -90,7 +150,7 @@ def render_chunks(model: nerf_model.NerfModel, variables, rays: camera.Rays,
 
 
 def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Rays,
-                        chunk_size: int = 4096, near_distance: float = 0.0,
+                        chunk_size: int = DEFAULT_CHUNK_SIZE, near_distance: float = 0.0,
                         selection_box=None) -> dict[str, np.ndarray]:
   """Renders any number of rays in fixed-size chunks (the last one padded), so memory stays
   bounded and every chunk reuses one compiled function.
@@ -117,8 +177,9 @@ def assemble(pieces, shape: tuple[int, ...]) -> dict[str, np.ndarray]:
 
 
 def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
-                   chunk_size: int = 4096, near_distance: float = 0.0, selection_box=None,
-                   pixels=None, supersampling: int | None = None) -> dict[str, np.ndarray]:
+                   chunk_size: int = DEFAULT_CHUNK_SIZE, near_distance: float = 0.0,
+                   selection_box=None, pixels=None, supersampling: int | None = None
+                   ) -> dict[str, np.ndarray]:
   """Renders every camera, or only the pixels `pixels` of each.
 
   Args:
@@ -137,9 +198,10 @@ def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Camer
     selection_weight [N, H, W], the weight inside `selection_box` (see `render_rays_chunked`).
     With supersampling, each is the mean over a pixel's rays.
   Raises:
-    InputError: `pixels` is not [N, H, W] for these cameras, or `supersampling` is not a
-      positive integer.
+    InputError: `pixels` is not [N, H, W] for these cameras, or `supersampling` or
+      `chunk_size` is not a positive integer.
   """
+  _check_positive(chunk_size, "chunk_size")
   if supersampling is None:
     supersampling = model.capacity.pixel_samples
   if isinstance(supersampling, bool) or not isinstance(supersampling, (int, np.integer)) or (

@@ -67,6 +67,12 @@ class TrainingData:
         raise InputError(f"pixel weights have shape {pixel_weights.shape}, the images "
                          f"{weights.shape}", dataset.root or None, "pixel_weights")
       weights = weights * pixel_weights
+    if dataset.masks is not None and not np.any(dataset.masks > 0):
+      # Every pixel masked out: the loss would be 0 from the first step, training would fit
+      # nothing and report a perfect score. (Zero pixel weights from a caller are a choice:
+      # a fine-tune that leaves the field as it is.)
+      raise InputError(f"every pixel of the {dataset.num_images} training views is masked out: "
+                       "the masks leave nothing to train on", dataset.root or None, "masks")
     alphas = None if dataset.alphas is None else jnp.asarray(dataset.alphas, jnp.float32)
     return cls(jnp.asarray(dataset.images, jnp.float32),
                jax.tree.map(jnp.asarray, dataset.cameras), jnp.asarray(weights), alphas)

@@ -11,18 +11,21 @@ the step). The loop itself, with its time budget and divergence guard, is `train
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from pathlib import Path
 from typing import Any
 
 import jax.numpy as jnp
+import numpy as np
 from jax.sharding import Mesh
 
-from signerf_jax import checkpoints, files, parallel, training_loop
+from signerf_jax import checkpoints, files, ownership, parallel, training_loop
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
-from signerf_jax.nerf.capacity import Capacity, CapacityRules, SceneInfo, derive_capacity
+from signerf_jax.nerf.capacity import Capacity, CapacityRules, derive_capacity
+from signerf_jax.nerf.scene_info import SceneInfo
 from signerf_jax.nerf.train import TrainConfig, TrainState, init_state, make_train_step
 from signerf_jax.nerf.training_data import TrainingData, with_region_rays
 
@@ -114,10 +117,69 @@ class Trainer:
     self.samples_trained = float(metadata.get("samples_trained", 0.0))
 
 
+def dataset_fingerprint(dataset: Dataset, data_options: dict[str, Any] | None = None
+                        ) -> dict[str, Any]:
+  """What identifies the data a run trains on: the dataset's folder, its training images (names
+  and size), the downscale it was loaded with and a hash of its cameras (poses, intrinsics,
+  lens) as loaded."""
+  options = data_options or {}
+  root = options.get("root") or dataset.root
+  cameras = dataset.cameras
+  digest = hashlib.sha256()
+  for array in (cameras.camera_to_world, cameras.fx, cameras.fy, cameras.cx, cameras.cy,
+                cameras.distortion):
+    digest.update(np.ascontiguousarray(array, np.float32).tobytes())
+  return {"root": str(Path(root).resolve()) if root else None,
+          "images": list(dataset.image_names), "size": [dataset.width, dataset.height],
+          "downscale": options.get("downscale"), "cameras_sha256": digest.hexdigest()}
+
+
+def _fingerprint_changes(saved: dict[str, Any], current: dict[str, Any]) -> list[str]:
+  """What differs between two fingerprints, in words."""
+  changes = []
+  if saved.get("root") != current["root"]:
+    changes.append(f"the dataset was {saved.get('root')}, now {current['root']}")
+  if saved.get("images") != current["images"]:
+    before, after = saved.get("images") or [], current["images"]
+    changes.append(f"{len(before)} training images then, {len(after)} now"
+                   + (", other names" if len(before) == len(after) else ""))
+  if saved.get("size") != current["size"]:
+    size = lambda value: "x".join(map(str, value or ["?"]))  # noqa: E731
+    changes.append(f"images of {size(saved.get('size'))} px then, {size(current['size'])} now")
+  if saved.get("downscale") != current["downscale"]:
+    changes.append(f"downscale {saved.get('downscale')} then, {current['downscale']} now")
+  if not changes and saved.get("cameras_sha256") != current["cameras_sha256"]:
+    changes.append("the cameras differ")
+  return changes
+
+
+def check_resumable(run_dir: str | os.PathLike, dataset: Dataset,
+                    data_options: dict[str, Any] | None = None) -> None:
+  """Refuses to resume a run on other data than it was trained on (a resumed run would train on
+  one dataset and be evaluated on the one model.json names). A run without a checkpoint, or
+  whose model.json predates fingerprints, passes.
+
+  Raises:
+    InputError naming model.json and what changed.
+  """
+  path = Path(run_dir) / MODEL_FILE
+  if not checkpoints.has_checkpoint(run_dir) or not path.is_file():
+    return
+  saved = files.read_json(path).get("fingerprint")
+  if not isinstance(saved, dict):
+    return
+  changes = _fingerprint_changes(saved, dataset_fingerprint(dataset, data_options))
+  if changes:
+    raise InputError(f"this run was trained on other data ({'; '.join(changes)}): give the data "
+                     "it was trained on to resume it, or --start_over to train afresh in this "
+                     "directory (the run's own files are replaced)", path, "fingerprint")
+
+
 def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
                      dataset: Dataset, data_options: dict[str, Any] | None = None) -> None:
   """Records in the run's model.json what rebuilds its model: the scene, the capacity, the edit
-  region and its view dependence, a summary of the dataset and the options it was loaded with."""
+  region and its view dependence, a summary of the dataset, the options it was loaded with and
+  its fingerprint (`dataset_fingerprint`, which a resume checks)."""
   files.write_json(Path(run_dir) / MODEL_FILE, {
       "scene": dataclasses.asdict(model.scene),
       "capacity": dataclasses.asdict(model.capacity),
@@ -125,6 +187,7 @@ def write_model_file(run_dir: str | os.PathLike, model: nerf_model.NerfModel,
       "region_view_dependence": model.region_view_dependence,
       "dataset": dataset.summary(),
       "data_options": dict(data_options or {}),
+      "fingerprint": dataset_fingerprint(dataset, data_options),
   })
 
 
@@ -187,18 +250,19 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
                if value is not None}
   config = dataclasses.replace(config, **overrides)
   run_dir = Path(run_dir)
+  ownership.check_claimable(run_dir, ownership.RUN, inputs=(("data", dataset.root),))
   if checkpoints.has_checkpoint(run_dir):
+    check_resumable(run_dir, dataset, data_options)
     saved_model, _ = read_model_file(run_dir)
     if model is not None and model != saved_model:
       raise InputError("the run directory holds a different model", run_dir / MODEL_FILE)
     model = saved_model
   trainer = make_trainer(dataset, model=model, config=config, init_variables=init_variables,
                          pixel_weights=pixel_weights, capacity_rules=capacity_rules)
-  run_dir.mkdir(parents=True, exist_ok=True)
-  files.remove_temporaries(run_dir)  # Left by a run killed mid-write.
-  if checkpoints.has_checkpoint(run_dir):
-    trainer.restore(run_dir)
-  else:
-    write_model_file(run_dir, trainer.model, dataset, data_options)
-  trainer.run(run_dir=run_dir, progress=progress)
+  with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", dataset.root),)):
+    if checkpoints.has_checkpoint(run_dir):
+      trainer.restore(run_dir)
+    else:
+      write_model_file(run_dir, trainer.model, dataset, data_options)
+    trainer.run(run_dir=run_dir, progress=progress)
   return trainer

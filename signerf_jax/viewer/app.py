@@ -21,7 +21,7 @@ import numpy as np
 import viser
 from viser import transforms
 
-from signerf_jax import configs, files
+from signerf_jax import configs, files, ownership
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.editing import place
 from signerf_jax.editing.commands import gin_value, parse_edit_config, run_command
@@ -32,7 +32,7 @@ from signerf_jax.editing.stages import sheets as sheets_stage
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import reference_cameras
 from signerf_jax.geometry import selection as selection_lib
-from signerf_jax.viewer import edit_session, progressive
+from signerf_jax.viewer import access, edit_session, progressive
 from signerf_jax.viewer.cameras import ViewPose, pose_of_camera
 
 # The sheet dropdown's entry for EditConfig.sheet = "" (the sheet of the edit's seed).
@@ -72,7 +72,10 @@ class Viewer:
         np.asarray(self.dataset.cameras.positions, np.float64) - centre, axis=1)))
     self.handle = None
     self._view_looked_through: int | None = None
-    self.server = viser.ViserServer(host=host, port=port, verbose=False)
+    # The page and its websocket ask for this token (printed in `url`): any other page the
+    # user has open could otherwise drive the viewer (access.py).
+    self.host, self.token = host, access.new_token()
+    self.server = access.serve(host, port, self.token)
     self.server.scene.set_up_direction(tuple(reference_cameras.scene_up(
         self.dataset.cameras)))
     self._draw_scene()
@@ -83,7 +86,8 @@ class Viewer:
 
   @property
   def url(self) -> str:
-    return f"http://{self.server.get_host()}:{self.server.get_port()}"
+    """The page's address, with its token (http://127.0.0.1:8080/?token=...)."""
+    return access.browser_url(self.host, self.server.get_port(), self.token)
 
   def close(self) -> None:
     for renderer in list(self._renderers.values()):
@@ -321,7 +325,9 @@ class Viewer:
 
   def save(self) -> Path:
     parse_edit_config(self.edit_dir, (), self.bindings())
-    path = configs.save_gin_config(self.edit_dir)
+    with ownership.claimed(self.edit_dir, ownership.EDIT,
+                           inputs=(("run", self.run_dir), ("data", self.dataset.root))):
+      path = configs.save_gin_config(self.edit_dir)
     self._say(f"Saved to `{path}`: `signerf edit --out {self.edit_dir}` continues from here.")
     return path
 

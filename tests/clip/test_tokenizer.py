@@ -179,3 +179,32 @@ def test_bad_files_name_the_file_and_field(tmp_path, vocabulary_and_merges):
   directory = write_tokenizer(tmp_path / "unknown_merge", vocabulary, [("q", "zz")])
   with pytest.raises(InputError, match="'zz' is not in the vocabulary"):
     tokenizer_lib.load_tokenizer(directory)
+
+
+def test_cut_off_is_the_end_tokenize_leaves_out(vocabulary_and_merges):
+  tokens = tokenizer_lib.CLIPTokenizer(*vocabulary_and_merges, max_length=8)
+  assert tokens.cut_off("Astronaut photograph") == ""
+  assert tokens.cut_off("astronaut photograph " * 5) == "astronaut photograph astronaut photograph"
+  long = tokenizer_lib.CLIPTokenizer(*vocabulary_and_merges)
+  for text in PROMPTS:
+    cut = long.cut_off(text)
+    kept = text[:text.rindex(cut)] if cut else text
+    assert len(long.encode(kept)) <= 75, text
+    if cut:  # The first word cut off does not fit whole.
+      assert len(long.encode(kept + cut.split()[0])) > 75, text
+  assert long.cut_off(PROMPTS[-1]).endswith("teddy bear on a bench")
+
+
+def test_characters_outside_the_vocabulary_are_named(vocabulary_and_merges):
+  vocabulary, merges = vocabulary_and_merges
+  tokens = tokenizer_lib.CLIPTokenizer(vocabulary, merges)
+  assert tokens.dropped_characters("a cow 🐄 東京 \x07") == []  # Every byte is in CLIP's.
+  # Without the symbol of byte 0xf0 (every emoji's first), emoji become the unknown token.
+  missing = tokenizer_lib.byte_to_symbol()[0xf0]
+  reduced = {token: index for token, index in vocabulary.items() if missing not in token}
+  kept = [(left, right) for left, right in merges if missing not in left + right]
+  tokens = tokenizer_lib.CLIPTokenizer(reduced, kept)
+  assert tokens.dropped_characters("a cow 🐄, a 🚀🐄 東京") == ["🐄", "🚀"]
+  assert tokens.unk_id in tokens.encode("🐄")
+  assert tokenizer_lib.prompt_problems(tokens, "a cow 🐄") == [
+      "the model's tokenizer cannot encode '🐄': its text encoder does not see them"]

@@ -77,3 +77,40 @@ def test_bad_tokenizer_files_raise_input_errors(tmp_path):
   (tmp_path / word_tokenizer.CONFIG_NAME).write_text(json.dumps({"tokenizer_class": "Other"}))
   with pytest.raises(InputError, match="no tokenizer found"):
     tokenizer_lib.load_tokenizer(tmp_path)
+
+
+@pytest.mark.parametrize("text, dropped", [
+    ("a red cow", []),
+    ("  A Red,STRIPED   cow!! an_orange-ball. (yes?) 'q'", []),  # Whitespace, punctuation.
+    ("a red 🐄 cow ✨🐄", ["🐄", "✨"]),
+    ("cow 👩‍👩‍👧", ["👩", "\u200d", "👧"]),  # Zero-width joiners too.
+    ("a $5 + cow", ["$", "+"]),
+    ("cafe\u0301", ["\u0301"]),  # A combining accent splits the word, and is lost.
+])
+def test_dropped_characters_are_what_splitting_into_words_loses(tokenizer, text, dropped):
+  assert tokenizer.dropped_characters(text) == dropped
+
+
+@pytest.mark.parametrize("text, cut", [
+    ("a red striped cow", ""),
+    ("a red striped cow an orange", ""),  # Six words: exactly max_length - 2.
+    ("a, red, striped, cow, an, orange, ball!", "ball!"),
+    ("red " * 20, " ".join(["red"] * 14)),
+    ("a red 🐄 striped cow an orange ball x", "ball x"),  # The emoji is no word.
+])
+def test_cut_off_is_the_end_tokenize_leaves_out(tokenizer, text, cut):
+  assert tokenizer.cut_off(text) == cut
+  kept = text[:text.rindex(cut)] if cut else text
+  np.testing.assert_array_equal(tokenizer.tokenize([kept]), tokenizer.tokenize([text]))
+
+
+def test_prompt_problems_name_unknown_words_dropped_characters_and_the_cut_end(tokenizer):
+  assert tokenizer_lib.prompt_problems(tokenizer, "a red cow") == []
+  problems = tokenizer_lib.prompt_problems(
+      tokenizer, "a red 🐄 zebra cow, a striped cow an orange ball")
+  assert problems == [
+      "the model does not know 'zebra' (it reads them as its unknown token); it knows 7 words: "
+      "a an ball cow orange red striped",
+      "the model's tokenizer cannot encode '🐄': its text encoder does not see them",
+      "longer than the 6 tokens the model's text encoder reads: the end 'cow an orange ball' is "
+      "cut off"]

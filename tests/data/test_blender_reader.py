@@ -106,3 +106,57 @@ def test_lego_cameras_look_at_the_origin_and_see_the_model(shared_data):
     seen_columns, seen_rows = columns[foreground[index]], rows[foreground[index]]
     assert np.all((seen_columns >= lower[0]) & (seen_columns <= upper[0]))
     assert np.all((seen_rows >= lower[1]) & (seen_rows <= upper[1]))
+
+
+def test_blender_scene_whose_test_images_are_all_missing_names_the_test_file(tmp_path):
+  write_blender_scene(tmp_path, missing_test=(0, 1))
+  with pytest.warns(UserWarning, match="skipped 2 frames"):
+    assert load_dataset(tmp_path).num_images == 3  # Training needs no test image.
+  with pytest.warns(UserWarning), pytest.raises(
+      InputError, match="test split's images are all missing") as error:
+    load_dataset(tmp_path, split="eval")
+  # Not eval_every, which nobody gave: the file whose images are missing.
+  assert error.value.path == str(tmp_path / "transforms_test.json")
+  assert error.value.field == "frames"
+  with pytest.warns(UserWarning):  # Holding out training views instead works.
+    assert load_dataset(tmp_path, split="eval", eval_every=2).num_images == 2
+
+
+def test_blender_scene_without_a_test_file_names_it(tmp_path):
+  write_blender_scene(tmp_path)
+  (tmp_path / "transforms_test.json").unlink()
+  with pytest.raises(InputError, match="file not found") as error:
+    load_dataset(tmp_path, split="eval")
+  assert error.value.path == str(tmp_path / "transforms_test.json")
+
+
+@pytest.mark.parametrize("outside", ["../secret", "/etc/hostname", "./train/link"])
+def test_blender_file_path_outside_the_scene_is_refused(tmp_path, outside):
+  scene = tmp_path / "scene"
+  write_blender_scene(scene)
+  files.write_image(tmp_path / "secret.png", np.zeros((8, 8, 4)))
+  (scene / "train" / "link.png").symlink_to(tmp_path / "secret.png")
+  meta = files.read_json(scene / "transforms_train.json")
+  meta["frames"][1]["file_path"] = outside
+  files.write_json(scene / "transforms_train.json", meta)
+  with pytest.raises(InputError, match="points outside the folder") as error:
+    load_dataset(scene)
+  assert error.value.path == str(scene / "transforms_train.json")
+  assert error.value.field == "frames[1].file_path"
+
+
+def test_blender_image_listed_twice_names_both_entries(tmp_path):
+  write_blender_scene(tmp_path, missing_test=())
+  meta = files.read_json(tmp_path / "transforms_test.json")
+  meta["frames"][1]["file_path"] = "train/r_2.png"  # A training view held out too.
+  files.write_json(tmp_path / "transforms_test.json", meta)
+  with pytest.raises(InputError, match=r"transforms_train.json's frames\[2\].file_path") as error:
+    load_dataset(tmp_path)
+  assert error.value.path == str(tmp_path / "transforms_test.json")
+  assert error.value.field == "frames[1].file_path"
+  meta = files.read_json(tmp_path / "transforms_train.json")
+  meta["frames"][0]["file_path"] = "./train/r_1"  # One file listing an image twice.
+  files.write_json(tmp_path / "transforms_train.json", meta)
+  with pytest.raises(InputError, match=r"frames\[0\].file_path") as error:
+    load_dataset(tmp_path)
+  assert error.value.field == "frames[1].file_path"

@@ -222,3 +222,83 @@ def test_fern_cameras_and_points_read_like_its_llff_poses(shared_data):
   assert fern_camera.params[0] == pytest.approx(3260.5, abs=0.1)  # LLFF's hwf focal
   points = colmap_model.read_points(model / "points3D.bin")
   assert points.shape[1] == 3 and len(points) > 1000 and np.all(np.isfinite(points))
+
+
+def rename_image(tmp_path, binary, old_name, name):
+  """The rig with image `old_name` renamed to `name`; returns (images file, its image id)."""
+  cameras, images, _ = make_rig(PERSPECTIVE_MODELS)
+  write_rig(tmp_path, binary=binary)
+  index = [image.name for image in images].index(old_name)
+  image = images[index]
+  images[index] = colmap_model.ColmapImage(image.image_id, image.quaternion, image.translation,
+                                           image.camera_id, name)
+  write_colmap_model(tmp_path / "sparse" / "0", cameras, images, POINTS, binary)
+  return tmp_path / "sparse" / "0" / ("images.bin" if binary else "images.txt"), image.image_id
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["binary", "text"])
+@pytest.mark.parametrize("escape", ["parent", "absolute", "symlink"])
+def test_an_image_name_leading_outside_the_image_folder_names_the_model_file_and_image(
+    tmp_path, binary, escape):
+  secret = tmp_path / "elsewhere" / "secret.png"
+  write_images(secret.parent, [secret.name], WIDTH, HEIGHT)  # Readable: it must not be read.
+  dataset = tmp_path / "dataset"
+  name = {"parent": "../../elsewhere/secret.png", "absolute": str(secret),
+          "symlink": "link.png"}[escape]
+  images_path, image_id = rename_image(dataset, binary, "view_02.png", name)
+  if escape == "symlink":
+    (dataset / "images" / "link.png").symlink_to(secret)
+  with pytest.raises(InputError, match="points outside") as error:
+    load_dataset(dataset, split="all")
+  assert error.value.path == str(images_path) and error.value.field == f"image {image_id}"
+
+
+def test_an_image_name_in_a_subfolder_of_the_image_folder_reads(tmp_path):
+  rename_image(tmp_path, False, "view_02.png", "camera_b/./view_02.png")
+  write_images(tmp_path / "images" / "camera_b", ["view_02.png"], WIDTH, HEIGHT)
+  (tmp_path / "images" / "view_02.png").unlink()
+  dataset = load_dataset(tmp_path, split="all")
+  assert "images/camera_b/./view_02.png" in dataset.image_names
+
+
+def images_text_lines(tmp_path):
+  """The rig written as text; (images.txt, its lines)."""
+  write_rig(tmp_path, binary=False)
+  path = tmp_path / "sparse" / "0" / "images.txt"
+  return path, path.read_text().splitlines()
+
+
+def test_images_txt_without_points_lines_is_refused_naming_the_line(tmp_path):
+  # One line per image (some exporters write only the pose lines): read as two lines per image
+  # it would silently lose every second image into a points line.
+  path, lines = images_text_lines(tmp_path)
+  comments, records = lines[:3], lines[3:]
+  path.write_text("\n".join(comments + records[::2]) + "\n")
+  with pytest.raises(InputError, match="reads as an image line") as error:
+    load_dataset(tmp_path, split="all")
+  # The first image's line is line 4, the second's (where points were expected) line 5.
+  assert error.value.path == str(path) and error.value.field == "line 5"
+  assert f"image {records[0].split()[0]}'s POINTS2D line" in str(error.value)
+
+
+@pytest.mark.parametrize("points", ["1.5 2.5", "1.5 2.5 x", "# comment", "1.5 2.5 0.5"])
+def test_a_malformed_points_line_names_the_line(tmp_path, points):
+  path, lines = images_text_lines(tmp_path)
+  lines[6] = points  # The second image's points line.
+  path.write_text("\n".join(lines) + "\n")
+  with pytest.raises(InputError, match="POINTS2D line must be empty or") as error:
+    load_dataset(tmp_path, split="all")
+  assert error.value.path == str(path) and error.value.field == "line 7"
+
+
+def test_images_txt_reads_every_image_with_any_points_lines(tmp_path):
+  path, lines = images_text_lines(tmp_path)
+  # Blank lines and comments between images, whitespace around points, 1e3 / nan / -inf
+  # numbers, and the last image's points line missing at the end of the file.
+  lines[4] = "  1e3 -2.5E-1 7   .5 nan -1  "
+  lines[6] = "0 -inf 3"
+  lines = lines[:5] + ["", "# another comment"] + lines[5:-1]
+  path.write_text("\n".join(lines))
+  images = colmap_model.read_images(path)
+  assert len(images) == len(PERSPECTIVE_MODELS)
+  assert load_dataset(tmp_path, split="all").num_images == len(PERSPECTIVE_MODELS)

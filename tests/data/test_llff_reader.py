@@ -128,3 +128,30 @@ def test_fern_focal_and_colmap_points_land_in_the_images(shared_data):
   np.testing.assert_allclose(coarse.cameras.fx, 407.6 / 2, atol=0.05)
   np.testing.assert_allclose(coarse.cameras.camera_to_world, fern.cameras.camera_to_world[::8],
                              atol=1e-6)
+
+
+@pytest.mark.filterwarnings("error")  # A ComplexWarning would mean the values were cast.
+@pytest.mark.parametrize("convert", [
+    lambda rows: rows + 1e-3j,
+    lambda rows: rows.astype(str),
+    lambda rows: np.where(np.arange(rows.size).reshape(rows.shape) == 20, "n/a", rows),
+    lambda rows: rows.astype(np.int64),
+    lambda rows: rows > 0,
+], ids=["complex", "text", "a_string_entry", "integer", "bool"])
+def test_llff_poses_that_are_not_floating_point_name_the_file_and_the_dtype(tmp_path, convert):
+  write_llff_scene(tmp_path, opengl_cameras())
+  rows = convert(np.load(tmp_path / "poses_bounds.npy"))
+  np.save(tmp_path / "poses_bounds.npy", rows)
+  with pytest.raises(InputError, match=f"floating-point numbers, got dtype {rows.dtype}") as error:
+    load_dataset(tmp_path, downscale=2)
+  assert error.value.path == str(tmp_path / "poses_bounds.npy") and error.value.field == "dtype"
+
+
+def test_llff_poses_saved_as_an_npz_archive_are_refused(tmp_path):
+  write_llff_scene(tmp_path, opengl_cameras())
+  rows = np.load(tmp_path / "poses_bounds.npy")
+  with open(tmp_path / "poses_bounds.npy", "wb") as handle:
+    np.savez(handle, poses_bounds=rows)
+  with pytest.raises(InputError, match="is an .npz archive") as error:
+    load_dataset(tmp_path, downscale=2)
+  assert error.value.path == str(tmp_path / "poses_bounds.npy")

@@ -4,8 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from signerf_jax import files
-from signerf_jax.data import load_dataset, load_views, nerfstudio, poses, write_nerfstudio
+from signerf_jax import files, ownership
+from signerf_jax.data import load_dataset, load_views, nerfstudio, poses, views, write_nerfstudio
 from signerf_jax.errors import InputError
 
 
@@ -185,7 +185,9 @@ def test_forward_facing_capture_is_detected(tmp_path, dataset_factory):
 
 def test_rewriting_a_directory_removes_stale_frames_and_never_mixes(tmp_path, dataset_factory,
                                                                     monkeypatch):
-  write_nerfstudio(tmp_path, dataset_factory(count=6))
+  directory = tmp_path / "dataset"
+  with ownership.claimed(directory, ownership.DATASET):  # As `signerf synthesize` writes.
+    write_nerfstudio(directory, dataset_factory(count=6))
   smaller = dataset_factory(count=3, seed=1)
   # Interrupt the second write half-way: no transforms.json may point at a mix of files.
   calls = []
@@ -198,17 +200,20 @@ def test_rewriting_a_directory_removes_stale_frames_and_never_mixes(tmp_path, da
 
   monkeypatch.setattr(nerfstudio.files, "write_exr", failing_write_exr)
   with pytest.raises(KeyboardInterrupt):
-    write_nerfstudio(tmp_path, smaller)
-  assert not (tmp_path / "transforms.json").exists()
+    with ownership.claimed(directory, ownership.DATASET):
+      write_nerfstudio(directory, smaller)
+  assert not (directory / "transforms.json").exists()
   with pytest.raises(InputError, match="transforms.json"):
-    load_dataset(tmp_path)
+    load_dataset(directory)
   monkeypatch.undo()
 
-  write_nerfstudio(tmp_path, smaller)
-  assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [
+  with ownership.claimed(directory, ownership.DATASET):
+    write_nerfstudio(directory, smaller)
+  assert sorted(p.name for p in (directory / "images").iterdir()) == [
       f"frame_{i:05d}.png" for i in range(3)]
-  assert not list(tmp_path.rglob(".*"))  # no temporary files left behind
-  restored = load_dataset(tmp_path, split="all")
+  # No temporary files left behind (the marker folder is the record of what was written).
+  assert [path.name for path in directory.rglob(".*")] == [ownership.MARKER_FOLDER]
+  restored = load_dataset(directory, split="all")
   np.testing.assert_array_equal(restored.depths, smaller.depths)
 
 
@@ -222,3 +227,242 @@ def test_frames_without_optional_files_get_neutral_values(tmp_path, dataset_fact
   restored = load_dataset(tmp_path, split="all")
   assert np.all(restored.masks[1] == 1) and np.all(restored.depths[1] == 0)
   assert np.all(restored.extras["object_masks"][1] == 0)
+
+
+# Issue 68: every path a transforms.json names stays inside the dataset folder, and values that
+# used to end in a traceback or a silently wrong scene are errors naming the file and entry.
+
+
+def written_scene(tmp_path, dataset_factory, count=5, **options):
+  """A nerfstudio scene in tmp_path/scene; (its folder, its transforms.json, the json read)."""
+  root = tmp_path / "scene"
+  write_nerfstudio(root, dataset_factory(count=count, **options))
+  path = root / "transforms.json"
+  return root, path, files.read_json(path)
+
+
+def test_contained_path_keeps_paths_inside_the_folder_after_symlinks(tmp_path):
+  root = tmp_path / "data"
+  (root / "images").mkdir(parents=True)
+  (root / "images" / "a.png").write_bytes(b"")
+  (tmp_path / "secret.png").write_bytes(b"")
+  assert files.contained_path(root, "images/a.png", "t.json", "f") == root / "images/a.png"
+  assert files.contained_path(root, "./images/../images/a.png", "t.json", "f").resolve() == (
+      root / "images/a.png").resolve()
+  assert files.contained_path(root, root / "images/a.png", "t.json", "f") == root / "images/a.png"
+  # A dataset folder reached through a symlink is fine: both sides are resolved.
+  (tmp_path / "link").symlink_to(root)
+  assert files.contained_path(tmp_path / "link", "images/a.png", "t.json", "f").is_file()
+  (root / "images" / "out.png").symlink_to(tmp_path / "secret.png")
+  for outside in ("../secret.png", str(tmp_path / "secret.png"), "images/out.png",
+                  "images/../../secret.png"):
+    with pytest.raises(InputError, match="points outside the folder") as error:
+      files.contained_path(root, outside, "t.json", "frames[3].file_path")
+    assert (error.value.path, error.value.field) == ("t.json", "frames[3].file_path")
+  for bad in ("", 3, None):
+    with pytest.raises(InputError) as error:
+      files.contained_path(root, bad, "t.json", "frames[0].file_path")
+    assert error.value.field == "frames[0].file_path"
+
+
+@pytest.mark.parametrize("key", ["file_path", "mask_path", "depth_file_path",
+                                 "object_mask_path"])
+def test_a_frame_file_outside_the_dataset_folder_is_refused(tmp_path, dataset_factory, key):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  # The file exists, so only the containment check stands between it and the reader.
+  secret = tmp_path / "secret.png"
+  files.write_image(secret, np.ones((9, 12, 3)))
+  meta["frames"][3][key] = "../secret.png"
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match="points outside the folder") as error:
+    load_dataset(root, split="all")
+  assert (error.value.path, error.value.field) == (str(path), f"frames[3].{key}")
+
+
+def test_an_extensionless_file_path_found_through_a_symlink_out_is_refused(tmp_path,
+                                                                           dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  image = root / meta["frames"][2]["file_path"]
+  image.rename(tmp_path / "elsewhere.png")
+  image.symlink_to(tmp_path / "elsewhere.png")
+  meta["frames"][2]["file_path"] = meta["frames"][2]["file_path"].removesuffix(".png")
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match="points outside") as error:
+    load_dataset(root, split="all")
+  assert error.value.field == "frames[2].file_path"
+
+
+def test_a_split_file_naming_a_file_outside_is_refused_naming_that_file(tmp_path,
+                                                                        dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  path.rename(root / "transforms_train.json")
+  test_meta = dict(meta, frames=[dict(meta["frames"][0], file_path="/etc/hostname")])
+  files.write_json(root / "transforms_test.json", test_meta)
+  with pytest.raises(InputError, match="points outside") as error:
+    load_dataset(root, split="all")
+  assert error.value.path == str(root / "transforms_test.json")
+  assert error.value.field == "frames[0].file_path"
+
+
+def test_a_frame_listed_twice_names_both_entries(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  meta["frames"][4]["file_path"] = "./" + meta["frames"][1]["file_path"]
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match=r"same image as frames\[1\]\.file_path") as error:
+    load_dataset(root)
+  assert (error.value.path, error.value.field) == (str(path), "frames[4].file_path")
+
+
+def test_a_training_frame_repeated_in_the_test_file_names_both(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  path.rename(root / "transforms_train.json")
+  files.write_json(root / "transforms_test.json", dict(meta, frames=meta["frames"][2:3]))
+  with pytest.raises(InputError, match=r"transforms_train.json's frames\[2\]") as error:
+    load_dataset(root)
+  assert error.value.path == str(root / "transforms_test.json")
+  assert error.value.field == "frames[0].file_path"
+  # val repeating test (instant-NGP's habit) stays accepted.
+  files.write_json(root / "transforms_train.json", dict(meta, frames=meta["frames"][:3]))
+  files.write_json(root / "transforms_test.json", dict(meta, frames=meta["frames"][3:]))
+  files.write_json(root / "transforms_val.json", dict(meta, frames=meta["frames"][3:]))
+  assert load_dataset(root, split="eval").num_images == 2
+
+
+@pytest.mark.parametrize("matrix, problem", [
+    ([[1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]], "singular"),
+    ([[1e-30, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "singular"),
+    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0]], "reflection"),
+    ([[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "shears"),
+    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], "last row"),
+], ids=["zero_row", "crushed_axis", "reflection", "shear", "projective"])
+def test_an_applied_transform_that_is_no_similarity_is_refused(tmp_path, dataset_factory,
+                                                                matrix, problem):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  meta["applied_transform"] = matrix
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match=problem) as error:
+    load_dataset(root)
+  assert (error.value.path, error.value.field) == (str(path), "applied_transform")
+
+
+def test_a_scaled_rotation_applied_transform_is_accepted(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  rotation = poses.rotation_between([0, 0, 1], [0, 1, 0])
+  meta["applied_transform"] = np.concatenate([3.0 * rotation, [[1], [2], [3]]], 1).tolist()
+  files.write_json(path, meta)
+  assert load_dataset(root).num_images == 4
+
+
+@pytest.mark.parametrize("camera_model, key, value", [
+    ("OPENCV", "k1", 1e30), ("OPENCV", "p2", -2e3), ("OPENCV_FISHEYE", "k4", 5e4),
+    ("FULL_OPENCV", "k6", 1e300)])
+def test_an_absurd_distortion_coefficient_is_refused(tmp_path, dataset_factory, camera_model,
+                                                     key, value):
+  fisheye = camera_model == "OPENCV_FISHEYE"
+  root, path, meta = written_scene(tmp_path, dataset_factory, distortion=(
+      (0.05, -0.01, 0.002, -0.0005) if fisheye else None), fisheye=fisheye)
+  meta["camera_model"], meta[key] = camera_model, value
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match="no real lens") as error:
+    load_dataset(root)
+  assert (error.value.path, error.value.field) == (str(path), key)
+  meta[key] = 900.0  # Within the bound: read as given.
+  meta["frames"][0][key] = value  # A per-frame value is named as such.
+  files.write_json(path, meta)
+  with pytest.raises(InputError) as error:
+    load_dataset(root)
+  assert error.value.field == f"frames[0].{key}"
+
+
+@pytest.mark.parametrize("position", [1e300, -1e11])
+def test_an_absurd_camera_position_names_the_frame(tmp_path, dataset_factory, position):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  meta["frames"][2]["transform_matrix"][1][3] = position
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match="camera position") as error:
+    load_dataset(root)
+  assert (error.value.path, error.value.field) == (str(path), "frames[2].transform_matrix")
+
+
+def test_a_scene_far_from_the_origin_is_still_read(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  for frame in meta["frames"]:
+    frame["transform_matrix"][0][3] += 1e5  # e.g. map coordinates in metres
+  for corner in meta["signerf"]["scene_bounds"]:
+    corner[0] += 1e5
+  files.write_json(path, meta)
+  restored = load_dataset(root, split="all")
+  # The box is centred and scaled as any box outside the unit box is; the cameras keep their
+  # distance to it (2.5 / 0.8 of its half-side, 1.25 / 0.8 of its height above its centre).
+  np.testing.assert_allclose(restored.scene_bounds, [[-1, -1, -0.6875], [1, 1, 0.6875]])
+  np.testing.assert_allclose(np.linalg.norm(restored.cameras.positions[:, :2], axis=-1),
+                             2.5 / 0.8, rtol=1e-3)  # float32 steps of 0.008 at 1e5
+
+
+def stationary_capture(tmp_path, dataset_factory, same_direction: bool):
+  """A plain capture (no signerf block) whose cameras all stand at (1, 2, 3)."""
+  root, path, meta = written_scene(tmp_path, dataset_factory, with_extras=False)
+  del meta["signerf"], meta["applied_transform"]
+  for frame in meta["frames"]:
+    if same_direction:
+      frame["transform_matrix"] = meta["frames"][0]["transform_matrix"]
+    for row, value in zip(frame["transform_matrix"], (1.0, 2.0, 3.0)):
+      row[3] = value
+  files.write_json(path, meta)
+  return root
+
+
+@pytest.mark.parametrize("same_direction", [True, False], ids=["one_pose", "panorama"])
+def test_cameras_that_do_not_move_ask_for_the_scene_region(tmp_path, dataset_factory,
+                                                           same_direction):
+  root = stationary_capture(tmp_path, dataset_factory, same_direction)
+  with pytest.raises(InputError, match="cameras do not move.*--scene_center.*--scene_radius"
+                     ) as error:
+    load_dataset(root)
+  assert error.value.path == str(root)
+  # Given the region, the capture loads in it.
+  given = load_dataset(root, scene_center=(1.0, 2.0, 4.0), scene_radius=2.0)
+  assert given.frame["center_in_source_units"] == pytest.approx([1.0, 2.0, 4.0])
+  assert given.frame["half_size_in_source_units"] == pytest.approx([2.0] * 3)
+  # A radius alone centres the region on the cameras; rays start clear of the lens.
+  around = load_dataset(root, scene_radius=2.0)
+  assert around.frame["center_in_source_units"] == pytest.approx([1.0, 2.0, 3.0], abs=1e-5)
+  assert around.near == pytest.approx(0.05)
+
+
+def test_degenerate_signerf_scene_bounds_are_refused(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  for bounds in ([[0, 0, 0], [1e-300, 1e-300, 1e-300]],
+                 [[5, 5, 5], [5 + 1e-9, 5 + 1e-9, 5 + 2e-9]]):
+    meta["signerf"]["scene_bounds"] = bounds
+    files.write_json(path, meta)
+    with pytest.raises(InputError, match="degenerate") as error:
+      load_dataset(root)
+    assert (error.value.path, error.value.field) == (str(path), "signerf.scene_bounds")
+  meta["signerf"]["scene_bounds"] = [[5, 5, 5], [5.001, 5.001, 5.001]]  # small, not degenerate
+  files.write_json(path, meta)
+  assert load_dataset(root).num_images == 4
+
+
+def test_masks_that_ignore_every_pixel_name_the_mask_folder(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  for frame in meta["frames"]:
+    files.write_image(root / frame["mask_path"], np.zeros((9, 12)))
+  with pytest.raises(InputError, match="no pixel is left") as error:
+    load_dataset(root, split="all")
+  assert error.value.path == str(root / "masks") and error.value.field == "mask_path"
+  # One pixel of one view is enough to train on (the others are still refused per split).
+  mask = np.zeros((9, 12))
+  mask[4, 5] = 1.0
+  files.write_image(root / meta["frames"][0]["mask_path"], mask)
+  assert load_dataset(root, split="all").masks.sum() > 0
+
+
+def test_an_empty_held_out_split_of_the_file_s_own_blames_no_flag(tmp_path, dataset_factory):
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  meta["train_filenames"] = [frame["file_path"] for frame in meta["frames"]]
+  files.write_json(path, meta)
+  with pytest.raises(InputError, match="the dataset's own split puts none of its 5 views") as error:
+    load_dataset(root, split="eval")
+  assert error.value.field is None  # eval_every was never given.
+  assert load_dataset(root, split="eval", eval_every=2).num_images == 3

@@ -140,3 +140,62 @@ def test_mask_and_image_counts_must_match_and_the_archive_must_be_readable(tmp_p
   with pytest.raises(InputError, match="not a readable .npz archive") as error:
     load_dataset(tmp_path, split="all")
   assert error.value.path == str(tmp_path / "cameras_sphere.npz")
+
+
+def cameras_of(root):
+  """(camera-to-world [N, 3, 4], intrinsics [N, 4]) of a capture, in the world_mat frame."""
+  cameras = neus.read_capture(root).cameras
+  return (np.asarray(cameras.camera_to_world, np.float64),
+          np.stack([cameras.fx, cameras.fy, cameras.cx, cameras.cy], -1))
+
+
+@pytest.mark.parametrize("scale", [1e300, 1e-300, -1e300])
+@pytest.mark.parametrize("whole", [False, True], ids=["projection", "whole_4x4"])
+def test_a_world_mat_at_any_finite_scale_reads_the_same_cameras(tmp_path, scale, whole):
+  # A projection matters only up to scale; 1e300 overflowed the determinant to inf (and 1e-300
+  # underflowed it to 0), which was taken for a singular matrix.
+  (tmp_path / "plain").mkdir()
+  (tmp_path / "scaled").mkdir()
+  write_capture(tmp_path / "plain")
+  expected = cameras_of(tmp_path / "plain")
+  scaled = {}
+  for index, (pose, intrinsics) in enumerate(zip(ring_poses(), INTRINSICS)):
+    matrix = neus_world_mat(pose, *intrinsics, scale=scale)
+    if whole:
+      matrix[3, 3] = scale  # The whole homogeneous 4x4 scaled: still the same map.
+    scaled[f"world_mat_{index}"] = matrix
+  write_capture(tmp_path / "scaled", **scaled)
+  actual = cameras_of(tmp_path / "scaled")
+  np.testing.assert_allclose(actual[0], expected[0], atol=1e-9)
+  np.testing.assert_allclose(actual[1], expected[1], rtol=1e-9)
+
+
+def test_a_scale_mat_at_a_huge_scale_gives_its_sphere(tmp_path):
+  scale_mat = neus_scale_mat(SPHERE_CENTRE, 1e300)
+  write_capture(tmp_path, **{f"scale_mat_{index}": scale_mat for index in range(COUNT)})
+  centre, radius = neus.read_capture(tmp_path).object_sphere
+  np.testing.assert_array_equal(centre, SPHERE_CENTRE)
+  assert radius == pytest.approx(1e300)
+
+
+HUGE_BAD_WORLD_MATS = {
+    "singular at 1e300": (rotated_projection() * 1e300, "singular"),
+    "rank 1 at 1e300": (np.outer([1.0, 2.0, 3.0, 0.0], [1.0, 1.0, 1.0, 1.0]) * 1e300 + np.diag(
+        [0.0, 0.0, 0.0, 1.0]), "singular"),
+    "zeros": (np.diag([0.0, 0.0, 0.0, 1.0]), "all zeros"),
+    "infinite at 1e300": (np.where(np.eye(3, 4) > 0, np.inf, 1e300), "finite"),
+    "complex": (neus_world_mat(ring_poses()[2], *INTRINSICS[2]) + 1e-3j, "real numbers, got "
+                "dtype complex128"),
+    "text": (neus_world_mat(ring_poses()[2], *INTRINSICS[2]).astype(str), "real numbers"),
+    "last row zero": (np.zeros((4, 4)), "last row"),
+}
+
+
+@pytest.mark.parametrize("case", HUGE_BAD_WORLD_MATS)
+def test_a_singular_non_finite_or_non_real_world_mat_names_the_file_and_the_key(tmp_path, case):
+  matrix, message = HUGE_BAD_WORLD_MATS[case]
+  write_capture(tmp_path, world_mat_2=matrix)
+  with pytest.raises(InputError, match=message) as error:
+    load_dataset(tmp_path, split="all")
+  assert error.value.path == str(tmp_path / "cameras_sphere.npz")
+  assert error.value.field == "world_mat_2"

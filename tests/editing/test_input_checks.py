@@ -51,3 +51,29 @@ def test_a_missing_proxy_mesh_is_named_before_any_stage():
   with pytest.raises(InputError, match="proxy mesh file not found") as error:
     inputs.check_inputs(dataclasses.replace(settings(), selection=selection))
   assert error.value.field == "proxy"
+
+
+LONG_PROMPT = "a red cow with spots " * 4  # 20 words; the shipped model reads 14.
+CUT_END = "spots a red cow with spots"
+
+
+@pytest.mark.parametrize("prompt, problem", [
+    (LONG_PROMPT, f"longer than the 14 tokens the model's text encoder reads: the end "
+                  f"{CUT_END!r} is cut off"),
+    ("a red 🐄 cow ✨", "the model's tokenizer cannot encode '🐄', '✨': its text encoder does "
+                       "not see them"),
+])
+def test_a_prompt_cut_short_or_losing_characters_is_a_warning_naming_what_is_lost(prompt,
+                                                                                  problem):
+  assert inputs.check_inputs(settings(prompt=prompt)) == [f"EditConfig.prompt: {problem}"]
+  assert inputs.check_inputs(settings(negative_prompt=prompt)) == [
+      f"EditConfig.negative_prompt: {problem}"]
+
+
+@pytest.mark.parametrize("field", ["prompt", "negative_prompt"])
+@pytest.mark.parametrize("prompt, problem", [(LONG_PROMPT, f"the end {CUT_END!r} is cut off"),
+                                             ("a red cow 🐄", "cannot encode '🐄'")])
+def test_with_strict_prompt_a_cut_or_lost_character_is_an_error(field, prompt, problem):
+  with pytest.raises(InputError, match=problem) as error:
+    inputs.check_inputs(settings(**{field: prompt, "strict_prompt": True}))
+  assert error.value.field == f"EditConfig.{field}"

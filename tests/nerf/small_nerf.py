@@ -7,13 +7,13 @@ import dataclasses
 
 import jax
 
-from signerf_jax.nerf import capacity, train
+from signerf_jax.nerf import capacity, scene_info, train
 from signerf_jax.nerf.model import NerfModel
 
 
 def small_model(dataset) -> NerfModel:
   """The derived capacity, with a batch small enough for fast tests."""
-  scene = capacity.SceneInfo.from_dataset(dataset)
+  scene = scene_info.SceneInfo.from_dataset(dataset)
   derived = capacity.derive_capacity(scene)
   return NerfModel(scene, dataclasses.replace(derived, rays_per_batch=1024,
                                               samples_per_batch=8192, mlp_width=32))

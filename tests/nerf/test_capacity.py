@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import capacity
+from signerf_jax.nerf import capacity, scene_info
 from signerf_jax.nerf.encoding import grid_layout
 from signerf_jax.nerf.perspective_warp import PerspectiveWarp
 
-LEGO_100 = capacity.SceneInfo(bounds=((-1, -1, -1), (1, 1, 1)), kind="bounded", near=1.0,
+LEGO_100 = scene_info.SceneInfo(bounds=((-1, -1, -1), (1, 1, 1)), kind="bounded", near=1.0,
                               far=4.4, background_color=(1, 1, 1), num_images=100, width=100,
                               height=100, pixel_footprint=2.7 / 138.9, camera_distance=2.7)
 
@@ -79,10 +79,10 @@ def test_bad_rules_are_input_errors_naming_the_field(fields, field):
 def test_json_round_trip():
   derived = capacity.derive_capacity(LEGO_100)
   assert capacity.Capacity.from_json(dataclasses.asdict(derived)) == derived
-  assert capacity.SceneInfo.from_json(dataclasses.asdict(LEGO_100)) == dataclasses.replace(
+  assert scene_info.SceneInfo.from_json(dataclasses.asdict(LEGO_100)) == dataclasses.replace(
       LEGO_100, bounds=((-1.0,) * 3, (1.0,) * 3), background_color=(1, 1, 1))
   as_json = json.loads(json.dumps(dataclasses.asdict(FORWARD_FACING)))
-  assert capacity.SceneInfo.from_json(as_json).perspective == FORWARD_FACING.perspective
+  assert scene_info.SceneInfo.from_json(as_json).perspective == FORWARD_FACING.perspective
 
 
 def test_rendering_takes_its_fraction_of_the_field_samples_and_training_all():
@@ -111,12 +111,12 @@ def test_rendering_takes_its_fraction_of_the_field_samples_and_training_all():
 def test_capacity_of_the_benchmark_scenes(shared_data):
   from signerf_jax.data import load_dataset  # pylint: disable=g-import-not-at-top
 
-  lego = capacity.SceneInfo.from_dataset(
+  lego = scene_info.SceneInfo.from_dataset(
       load_dataset(shared_data / "nerf_synthetic" / "lego", downscale=8))
   derived = capacity.derive_capacity(lego)
   assert (lego.width, lego.height) == (100, 100) and derived.sampler == "occupancy"
   assert 64 <= derived.finest_resolution <= 160 and derived.log2_table_size <= 17
-  fern = capacity.SceneInfo.from_dataset(load_dataset(shared_data / "llff" / "fern",
+  fern = scene_info.SceneInfo.from_dataset(load_dataset(shared_data / "llff" / "fern",
                                                       downscale=16))
   derived = capacity.derive_capacity(fern)
   assert fern.kind == "forward_facing" and derived.sampler == "proposal"
@@ -230,3 +230,31 @@ def test_perspective_warp_of_cameras_looking_all_around_is_an_input_error():
                                       50.0, width=100, height=60)
   with pytest.raises(InputError, match="not a forward-facing capture"):
     PerspectiveWarp.from_cameras(cameras, near=0.5, far=4.0)
+
+
+@pytest.mark.parametrize("bounds, problem", [
+    (((0, 0, 0), (1e-300, 1e-300, 1e-300)), "degenerate"),
+    (((0, 0, 0), (0, 0, 0)), "degenerate"),
+    (((-1, -1, -1), (1, -2, 1)), "degenerate"),
+    (((-1, -1, -1), (1, float("inf"), 1)), "finite corners"),
+    (((-1, -1, float("nan")), (1, 1, 1)), "finite corners"),
+], ids=["tiny", "point", "inverted", "infinite", "nan"])
+def test_degenerate_or_non_finite_bounds_are_an_input_error_not_a_division(bounds, problem):
+  with pytest.raises(InputError, match=problem) as error:
+    capacity.derive_capacity(dataclasses.replace(LEGO_100, bounds=bounds))
+  assert error.value.field == "scene_bounds"
+
+
+@pytest.mark.parametrize("field", ["camera_distance", "pixel_footprint"])
+def test_non_finite_camera_geometry_is_an_input_error(field):
+  with pytest.raises(InputError, match="not positive and finite") as error:
+    capacity.derive_capacity(dataclasses.replace(LEGO_100, **{field: float("nan")}))
+  assert error.value.field == field
+
+
+def test_scene_info_from_a_dataset_with_degenerate_bounds_names_the_dataset(sphere):
+  degenerate = dataclasses.replace(sphere, root="/data/sphere",
+                                   scene_bounds=np.full((2, 3), 0.5, np.float32))
+  with pytest.raises(InputError, match="degenerate") as error:
+    scene_info.SceneInfo.from_dataset(degenerate)
+  assert (error.value.path, error.value.field) == ("/data/sphere", "scene_bounds")

@@ -20,8 +20,8 @@ from signerf_jax import camera
 from signerf_jax.editing import finetune
 from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import (capacity, evaluate, render, sampling, train, training_data,
-                              training_run, volume)
+from signerf_jax.nerf import (capacity, evaluate, render, sampling, scene_info, train,
+                              training_data, training_run, volume)
 from signerf_jax.nerf import model as nerf_model
 
 BACKGROUND = jnp.array([0.2, 0.4, 0.6])
@@ -202,7 +202,7 @@ def test_the_proposal_sampler_keeps_rays_missing_the_region_too(sphere):
 def proposal_region_model(sphere):
   """An unbounded proposal-sampler model of the sphere scene with the edit region, untrained."""
   dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
-  scene = capacity.SceneInfo.from_dataset(dataset)
+  scene = scene_info.SceneInfo.from_dataset(dataset)
   derived = capacity.derive_capacity(scene, capacity.CapacityRules(samples_per_batch=4096))
   model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
                                                           samples_per_ray=8, mlp_width=32),

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
-from signerf_jax import camera, parallel
+from signerf_jax import camera, ownership, parallel
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf import training_run
@@ -141,8 +141,9 @@ def test_a_resumed_run_is_placed_on_the_mesh_and_compiles_nothing(sphere, tmp_pa
   model = small_model(sphere)
   config = dataclasses.replace(CONFIG, steps=3)
   first = training_run.make_trainer(sphere, model=model, config=config)
-  training_run.write_model_file(tmp_path, model, sphere)
-  first.run(until_step=2, run_dir=tmp_path, progress=False)
+  with ownership.claimed(tmp_path, ownership.RUN):  # As `training_run.train` does.
+    training_run.write_model_file(tmp_path, model, sphere)
+    first.run(until_step=2, run_dir=tmp_path, progress=False)
   with count_compilations() as compiled:
     resumed = training_run.train(sphere, tmp_path, model=model, config=config, progress=False)
   assert resumed.step == 3 and compiled == []

@@ -9,7 +9,7 @@ import pytest
 from small_nerf import SMALL_CONFIG, count_compilations
 
 from signerf_jax import camera
-from signerf_jax.nerf import capacity, evaluate, training_run, model as nerf_model
+from signerf_jax.nerf import capacity, evaluate, model as nerf_model, scene_info, training_run
 
 
 @pytest.mark.parametrize("kind", ["unbounded", "forward_facing"])
@@ -17,7 +17,7 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
   # Forward-facing: the five ring cameras within 45 degrees of the first one's direction.
   views = sphere if kind == "unbounded" else sphere.subset([14, 15, 0, 1, 2])
   dataset = dataclasses.replace(views, scene_kind=kind, background_color=None)
-  scene = capacity.SceneInfo.from_dataset(dataset)
+  scene = scene_info.SceneInfo.from_dataset(dataset)
   derived = capacity.derive_capacity(scene, capacity.CapacityRules(samples_per_batch=4096))
   model = nerf_model.NerfModel(scene, dataclasses.replace(derived, proposal_samples=(16, 8),
                                                           samples_per_ray=8, mlp_width=32))
@@ -57,7 +57,7 @@ def test_proposal_sampler_trains_without_recompiling(sphere, kind):
 
 def test_appearance_embedding_is_per_image_and_the_mean_for_novel_views(sphere):
   dataset = dataclasses.replace(sphere, scene_kind="unbounded", background_color=None)
-  scene = capacity.SceneInfo.from_dataset(dataset)
+  scene = scene_info.SceneInfo.from_dataset(dataset)
   model = nerf_model.NerfModel(scene, capacity.derive_capacity(
       scene, capacity.CapacityRules(appearance_embedding=True)))
   assert model.capacity.appearance_embedding

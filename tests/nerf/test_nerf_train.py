@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
-from signerf_jax import checkpoints
+from signerf_jax import checkpoints, ownership, training_loop
 from signerf_jax.nerf import evaluate, render, train, training_data, training_run
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.training_loop import TrainingDiverged
@@ -72,8 +72,9 @@ def test_resumed_run_equals_uninterrupted_run(sphere, tmp_path):
                                      progress=False)
   # The first half stops at step 5 of the same 10-step run (same learning-rate schedule).
   first_half = training_run.make_trainer(sphere, model=model, config=config)
-  training_run.write_model_file(tmp_path / "split", model, sphere)
-  first_half.run(until_step=5, run_dir=tmp_path / "split", progress=False)
+  with ownership.claimed(tmp_path / "split", ownership.RUN):  # As `training_run.train` does.
+    training_run.write_model_file(tmp_path / "split", model, sphere)
+    first_half.run(until_step=5, run_dir=tmp_path / "split", progress=False)
   resumed = training_run.train(sphere, tmp_path / "split", config=config, progress=False)
   assert resumed.step == uninterrupted.step == 10
   whole_leaves = jax.tree.leaves(uninterrupted.state)
@@ -95,11 +96,13 @@ def test_interrupted_run_keeps_its_last_checkpoint(sphere, tmp_path):
     return step_fn(state, data, progress)
 
   trainer._step_fn = failing_step
-  training_run.write_model_file(tmp_path, model, sphere)
-  with pytest.raises(KeyboardInterrupt):
-    trainer.run(run_dir=tmp_path, progress=False)
+  with ownership.claimed(tmp_path, ownership.RUN):  # As `training_run.train` does.
+    training_run.write_model_file(tmp_path, model, sphere)
+    with pytest.raises(training_loop.TrainingInterrupted) as interrupted:
+      trainer.run(run_dir=tmp_path, progress=False)
   restored, metadata = checkpoints.restore(tmp_path, train.init_state(model, config))
-  assert int(restored.step) == metadata["step"] == 6
+  # The 7 steps done are saved, not only the 6 of the last periodic checkpoint.
+  assert int(restored.step) == metadata["step"] == interrupted.value.step == 7
   assert not list(tmp_path.glob(".checkpoint*"))  # no temporary file left behind
 
 

@@ -1,9 +1,13 @@
 """Rendering: marching only through the occupied cells' box renders as the whole march; a subset
 of pixels renders as those pixels of the whole images; a supersampled pixel is the mean of the rays
 through a grid inside it; written renders hold the median depth, and the depth picture is finite
-and ordered for any depth map."""
+and ordered for any depth map; a chunk never holds more rays than there are (beyond the default
+chunk), and a chunk size whose buffers cannot fit in memory is refused before any work."""
 
 import dataclasses
+import subprocess
+import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -187,3 +191,83 @@ def test_supersampling_must_be_a_positive_integer(sphere, supersampling):
   with pytest.raises(InputError, match="supersampling"):
     render.render_cameras(model, variables, sphere.cameras.take([0]), 256,
                           supersampling=supersampling)
+
+
+@pytest.mark.parametrize("count,chunk_size,chunks", [
+    (300, 10**13, [4096]),        # Padded to the default chunk only: its compilation serves.
+    (5000, 10**13, [5000]),       # No more than the rays.
+    (5000, 2048, [2048] * 3),
+    (300, 256, [256, 256]),
+])
+def test_a_chunk_holds_no_more_than_the_rays_or_the_default_chunk(sphere, monkeypatch, count,
+                                                                  chunk_size, chunks):
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  shapes = []
+
+  def fake_render_chunk(model, variables, chunk, *args):
+    shapes.append(len(chunk.camera_indices))
+    return {name: np.zeros((len(chunk.camera_indices),) + ((3,) if name == "rgb" else ()),
+                           np.float32) for name in render.IMAGE_OUTPUTS}
+
+  monkeypatch.setattr(render, "_render_chunk", fake_render_chunk)
+  rays = _rays(np.zeros((count, 3)), np.tile([[0.0, 0.0, 1.0]], (count, 1)))
+  outputs = render.render_rays_chunked(model, variables, rays, chunk_size)
+  assert shapes == chunks
+  assert outputs["rgb"].shape == (count, 3)
+
+
+def test_a_huge_chunk_size_renders_as_the_default_one(sphere):
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  cameras = sphere.cameras.take([0, 5])
+  default = render.render_cameras(model, variables, cameras)
+  with count_compilations() as compiled:
+    huge = render.render_cameras(model, variables, cameras, 10**13)
+  assert not compiled
+  for name, image in huge.items():
+    np.testing.assert_array_equal(image, default[name], err_msg=name)
+
+
+@pytest.mark.parametrize("chunk_size", [0, -5, 2.5, True])
+def test_a_chunk_size_must_be_a_positive_integer(sphere, chunk_size):
+  model = small_model(sphere)
+  variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
+  with pytest.raises(InputError, match="chunk_size: must be a positive integer"):
+    render.render_cameras(model, variables, sphere.cameras.take([0]), chunk_size)
+  with pytest.raises(InputError, match="chunk_size: must be a positive integer"):
+    render.check_chunk_size(chunk_size)
+
+
+def test_a_chunk_size_whose_buffers_cannot_fit_in_memory_is_refused():
+  gib = 2**30
+  render.check_chunk_size(4096, "--chunk_size", memory=16 * gib)
+  render.check_chunk_size(16 * gib // render.CHUNK_BYTES_PER_RAY, memory=16 * gib)
+  with pytest.raises(InputError) as error:
+    render.check_chunk_size(10**13, "--chunk_size", memory=16 * gib)
+  assert error.value.field == "--chunk_size"
+  assert str(error.value) == (
+      "--chunk_size: 10000000000000 rays at once need at least 1.2 PiB of memory (136 bytes a "
+      "ray for the rays and their outputs alone), more than this machine's 16.0 GiB; the "
+      "default is 4096")
+  with pytest.raises(InputError, match="more than this machine's"):
+    render.check_chunk_size(16 * gib // render.CHUNK_BYTES_PER_RAY + 1, memory=16 * gib)
+  # What the machine has, by default.
+  with pytest.raises(InputError, match="more than this machine's"):
+    render.check_chunk_size(render.physical_memory() // render.CHUNK_BYTES_PER_RAY + 1)
+
+
+@pytest.mark.parametrize("command", [["eval"], ["render"]])
+def test_the_commands_refuse_a_huge_chunk_size_before_loading_anything(command, tmp_path):
+  # A missing run: the chunk size is refused first, in seconds, without allocating its buffers
+  # (numpy failed on "Unable to allocate 109. TiB" after loading the run and the data).
+  started = time.monotonic()
+  process = subprocess.run(
+      [sys.executable, "-m", "signerf_jax.cli", *command, "--run", str(tmp_path / "missing"),
+       "--chunk_size", "10000000000000"], capture_output=True, text=True, timeout=120)
+  assert process.returncode == 2, process.stderr
+  assert process.stderr.startswith(f"signerf {command[0]}: error: --chunk_size: "
+                                   "10000000000000 rays at once need at least 1.2 PiB of "
+                                   "memory"), process.stderr
+  assert "this machine's" in process.stderr and "Traceback" not in process.stderr
+  assert time.monotonic() - started < 60

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from signerf_jax import cli, files
+from signerf_jax import cli, files, ownership
 from signerf_jax.data import synthetic, synthetic_render
 
 # The helpers of the editing and NeRF tests: random_pipeline, small_nerf.
@@ -40,12 +40,13 @@ def viewed_edit(viewed_run, tmp_path_factory):
   model = write_random_pipeline(tmp_path_factory.mktemp("random_model"))
   directory = tmp_path_factory.mktemp("edit")
   free_spot = scene["free_spot"]
-  (directory / "config.gin").write_text("\n".join([
-      "EditConfig.prompt = 'a red cow'", f"EditConfig.model = {str(model)!r}",
-      "SelectionConfig.kind = 'proxy'", "SelectionConfig.proxy = 'primitive:cow'",
-      f"SelectionConfig.ground_position = {tuple(free_spot['center'])!r}",
-      f"SelectionConfig.ground_size = {min(1.6 * free_spot['radius'], 0.3)!r}",
-      f"SelectionConfig.up = {tuple(scene['up'])!r}",
-      "SheetConfig.tile_size = 16", "first_iteration/GenerationOptions.num_inference_steps = 2",
-      "PreviewConfig.seeds = (0, 1)", ""]))
+  with ownership.claimed(directory, ownership.EDIT):  # As `signerf place` writes it.
+    files.write_text(directory / "config.gin", "\n".join([
+        "EditConfig.prompt = 'a red cow'", f"EditConfig.model = {str(model)!r}",
+        "SelectionConfig.kind = 'proxy'", "SelectionConfig.proxy = 'primitive:cow'",
+        f"SelectionConfig.ground_position = {tuple(free_spot['center'])!r}",
+        f"SelectionConfig.ground_size = {min(1.6 * free_spot['radius'], 0.3)!r}",
+        f"SelectionConfig.up = {tuple(scene['up'])!r}",
+        "SheetConfig.tile_size = 16", "first_iteration/GenerationOptions.num_inference_steps = 2",
+        "PreviewConfig.seeds = (0, 1)", ""]))
   return directory

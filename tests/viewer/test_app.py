@@ -21,7 +21,7 @@ from signerf_jax.viewer import app
 def edit_copy(viewed_edit, tmp_path_factory):
   """The edit directory, copied: this module saves into it."""
   directory = tmp_path_factory.mktemp("edit_copy")
-  shutil.copy(viewed_edit / "config.gin", directory / "config.gin")
+  shutil.copytree(viewed_edit, directory, dirs_exist_ok=True)  # With signerf's record of it.
   return directory
 
 
@@ -97,6 +97,17 @@ def test_a_reroll_previews_the_sheet_with_those_tiles_generated_again(viewer, ed
   viewer.reroll_tiles.value = "one"
   assert viewer.submit(viewer.reroll).result() is None
   assert "error" in viewer.status.content and viewer.recipes == ("0/1@7",)
+
+
+def test_save_leaves_the_users_files_in_the_edit_as_they_were(viewer, edit_copy):
+  names = (".env.database", "notes/.tool.settings.json", "selection/my_selection.json",
+           "reference/paper.pdf", ".config.a1b2c3d4.gin")
+  for name in names:
+    (edit_copy / name).parent.mkdir(parents=True, exist_ok=True)
+    (edit_copy / name).write_text(f"the user's {name}")
+  viewer.submit(viewer.save).result()
+  for name in names:
+    assert (edit_copy / name).read_text() == f"the user's {name}"
 
 
 def test_save_writes_the_selection_and_settings_that_the_edit_reads(viewer, edit_copy):

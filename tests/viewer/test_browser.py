@@ -8,7 +8,9 @@ CI installs it)."""
 
 from __future__ import annotations
 
+import http.server
 import shutil
+import threading
 import time
 
 import cv2
@@ -19,7 +21,7 @@ from signerf_jax import camera, configs
 from signerf_jax.editing import place
 from signerf_jax.editing.commands import edit_settings, parse_edit_config
 from signerf_jax.editing.config import SelectionConfig
-from signerf_jax.viewer import app
+from signerf_jax.viewer import access, app
 from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
 
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
@@ -59,9 +61,16 @@ def browser(viewer):
                    "--enable-unsafe-swiftshader", "--force-device-scale-factor=1"):
     options.add_argument(argument)
   driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-  driver.get(viewer.url)
+  open_viewer(driver, viewer)
   yield driver
   driver.quit()
+
+
+def open_viewer(driver, viewer) -> None:
+  """Opens the page as its user does: the address `signerf view` prints, whose ?token= lets the
+  page in and sets the cookie its websocket carries (the page drops the query string)."""
+  assert "?token=" in viewer.url
+  driver.get(viewer.url)
 
 
 def screenshot(browser) -> np.ndarray:
@@ -237,3 +246,46 @@ def test_dragging_the_handle_with_the_mouse_moves_the_proxy_along_the_arrow(view
   # Along the grabbed arrow, forwards, and nowhere else.
   assert np.dot(shift, rotation[:, axis]) > 0.9 * np.linalg.norm(shift) > 0
   assert viewer.selection.heading_degrees == pytest.approx(before.heading_degrees, abs=1e-3)
+
+
+# Opens a websocket from the page the browser shows; reports whether it opened.
+TRY_WEBSOCKET = """
+const done = arguments[arguments.length - 1];
+const socket = new WebSocket(arguments[0], [arguments[1]]);
+socket.onopen = () => { socket.close(); done("open"); };
+socket.onerror = () => done("refused");
+"""
+
+
+def try_websocket(browser, viewer) -> str:
+  import viser  # pylint: disable=g-import-not-at-top
+  browser.set_script_timeout(30)
+  return browser.execute_async_script(
+      TRY_WEBSOCKET, f"ws://127.0.0.1:{viewer.server.get_port()}/",
+      f"viser-v{viser.__version__}")
+
+
+def test_another_page_in_the_browser_cannot_drive_the_viewer(viewer, browser, tmp_path):
+  """Issue 68's attack: a page of another site open in the user's browser opens a websocket to
+  the viewer. Here that site is another port of 127.0.0.1, so the browser even sends the
+  viewer's token cookie (cookies ignore ports): its Origin alone refuses it."""
+  cookie = next(cookie for cookie in browser.get_cookies()
+                if cookie["name"] == access.cookie_name(viewer.server.get_port()))
+  assert cookie["value"] == viewer.token and cookie["httpOnly"]
+  assert cookie["sameSite"] == "Strict"
+  assert try_websocket(browser, viewer) == "open"  # From the viewer's own page.
+  (tmp_path / "index.html").write_text("<html><body>another site</body></html>")
+  handler = lambda *args: http.server.SimpleHTTPRequestHandler(*args, directory=tmp_path)
+  other_site = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+  threading.Thread(target=other_site.serve_forever, daemon=True).start()
+  try:
+    browser.get(f"http://127.0.0.1:{other_site.server_address[1]}/")
+    assert try_websocket(browser, viewer) == "refused"
+    # Without the cookie and the token, the viewer's page itself is refused.
+    browser.delete_all_cookies()
+    browser.get(viewer.url.split("?")[0])
+    assert "refused: no token" in browser.page_source
+  finally:
+    other_site.shutdown()
+    other_site.server_close()
+    open_viewer(browser, viewer)  # As the other tests expect the browser.

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from analytic_scene import sphere_dataset
-from signerf_jax.nerf import capacity, evaluate, render
+from signerf_jax.nerf import capacity, evaluate, render, scene_info
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.viewer import progressive
 from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
@@ -39,7 +39,7 @@ def test_frames_come_coarse_first_with_the_pixels_of_a_direct_render(trained):
 
 def test_frames_before_the_finest_take_a_third_of_the_field_samples():
   dataset = dataclasses.replace(sphere_dataset(), scene_kind="unbounded", background_color=None)
-  scene = capacity.SceneInfo.from_dataset(dataset)
+  scene = scene_info.SceneInfo.from_dataset(dataset)
   model = nerf_model.NerfModel(scene, dataclasses.replace(
       capacity.derive_capacity(scene), proposal_samples=(16,), samples_per_ray=12, mlp_width=16))
   variables = nerf_model.init_variables(model, jax.random.key(0))

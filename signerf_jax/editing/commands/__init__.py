@@ -31,8 +31,8 @@ from signerf_jax import configs
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.editing import generation, stages
-from signerf_jax.editing.config import (TRAINING_RUNS, EditConfig, EditSettings,
-                                        EvaluationConfig, FinetuneConfig,
+from signerf_jax.editing.config import (GENERATION_SCOPES, TRAINING_RUNS, EditConfig,
+                                        EditSettings, EvaluationConfig, FinetuneConfig,
                                         NerfConsistencySettings, NerfUpdate, PRIMITIVE_PREFIX,
                                         PreviewConfig, SchedulerOverride, SelectionConfig,
                                         SheetConfig, UpdateConfig)
@@ -195,8 +195,7 @@ def edit_settings() -> EditSettings:
       sheet=configs.build(SheetConfig), preview=configs.build(PreviewConfig),
       update=configs.build(UpdateConfig), finetune=configs.build(FinetuneConfig),
       evaluation=configs.build(EvaluationConfig),
-      generation=(configs.build(GenerationOptions, "first_iteration"),
-                  configs.build(GenerationOptions, "second_iteration")),
+      generation=tuple(configs.build(GenerationOptions, scope) for scope in GENERATION_SCOPES),
       training={run: configs.build(TrainConfig, run) for run in TRAINING_RUNS},
       capacity=configs.build(CapacityRules), placement=configs.build(ReferencePlacement),
       attention=configs.build(AttentionOptions),
@@ -211,11 +210,12 @@ def run_command(name: str, directory: str | Path, redo=(), progress: bool = True
   to `log`; by default, prefixed `signerf NAME`, to stderr as the progress bars do: stdout holds
   only the command's result (for `signerf eval --edit`, one JSON line)."""
   settings = edit_settings()
-  configs.save_gin_config(directory)
   if log is None:
     log = lambda line: print(f"signerf {name} {line}", file=sys.stderr, flush=True)
-  return stages.run_edit(directory, settings, until=LAST_STAGE[name], redo=tuple(redo),
-                         progress=progress, log=log)
+  with stages.claimed_edit(directory, settings):
+    configs.save_gin_config(directory)
+    return stages.run_edit(directory, settings, until=LAST_STAGE[name], redo=tuple(redo),
+                           progress=progress, log=log)
 
 
 def run_stages(name: str, args: argparse.Namespace, extra_bindings=()

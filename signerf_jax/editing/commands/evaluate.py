@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from signerf_jax import ownership
 from signerf_jax.editing import commands
 from signerf_jax.nerf.commands import evaluate as nerf_evaluate
 
@@ -20,4 +21,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
   if args.edit is not None:
     return commands.run_evaluation(args.edit)
-  return nerf_evaluate.run(args)
+  # The evaluation writes eval.json and eval/ into the run: only into a run signerf made.
+  with ownership.claimed(args.run, ownership.RUN, flag="run"):
+    return nerf_evaluate.run(args)

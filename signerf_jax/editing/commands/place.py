@@ -22,7 +22,7 @@ import os
 import sys
 from pathlib import Path
 
-from signerf_jax import configs, files
+from signerf_jax import configs, files, ownership
 from signerf_jax.editing import place
 from signerf_jax.editing.commands import gin_value, parse_edit_config
 from signerf_jax.editing.config import PRIMITIVE_PREFIX, SelectionConfig
@@ -106,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
                      "twice or more (a box)", field="place")
   trained = evaluate.load_run(args.run)
   dataset = load_recorded_dataset(trained.description, "train")
+  inputs = (("run", args.run), ("data", dataset.root))
+  ownership.check_claimable(args.out, ownership.EDIT, inputs=inputs)  # Before the work.
   if args.rectangle:
     views, rectangles = _rectangles(args.rectangle, dataset.image_names)
     selection, view, pixel = place.box_selection(dataset, views, rectangles), views[0], None
@@ -126,8 +128,9 @@ def run(args: argparse.Namespace) -> int:
   bindings.append(f"EditConfig.original_run = {gin_value(str(Path(args.run).resolve()))}")
   parse_edit_config(args.out, (), bindings)  # On top of the edit's saved settings, if any.
   out = Path(args.out)
-  configs.save_gin_config(out)
-  files.write_image(out / FIGURE_NAME, figure)
+  with ownership.claimed(out, ownership.EDIT, inputs=inputs):
+    configs.save_gin_config(out)
+    files.write_image(out / FIGURE_NAME, figure)
   print(f"signerf place: {report}; {out / FIGURE_NAME} shows it", file=sys.stderr)
   print(json.dumps({"selection": {name: getattr(selection, name)
                                   for name in place.PLACEMENT_FIELDS[selection.kind]},

@@ -144,10 +144,11 @@ class Sweep:
     configs.parse_gin(self.gin_files, self.bindings)
     directory = self.root / "original"
     settings = commands.edit_settings()
-    configs.save_gin_config(directory)
-    edit = stages.run_edit(directory, settings, until="original",
-                           progress=self.progress,
-                           log=lambda line: self.log(f"original NeRF {line}"))
+    with stages.claimed_edit(directory, settings):
+      configs.save_gin_config(directory)
+      edit = stages.run_edit(directory, settings, until="original",
+                             progress=self.progress,
+                             log=lambda line: self.log(f"original NeRF {line}"))
     run_dir = edit.original_run_dir.resolve()
     self.bindings.append(f"EditConfig.original_run = {str(run_dir)!r}")
     return {"run": str(run_dir), "seconds": edit.directory.stage_seconds()["original"]}
@@ -166,8 +167,9 @@ class Sweep:
       self.log(f"{group}/{variant.name}: the same edit as {earlier['directory']}")
       return {**result, **earlier, "same_as": earlier["directory"]}
     jax.clear_caches()
-    configs.save_gin_config(directory)
-    edit = stages.run_edit(directory, settings, progress=self.progress,
-                           log=lambda line: self.log(f"{group}/{variant.name} {line}"))
+    with stages.claimed_edit(directory, settings):
+      configs.save_gin_config(directory)
+      edit = stages.run_edit(directory, settings, progress=self.progress,
+                             log=lambda line: self.log(f"{group}/{variant.name} {line}"))
     self._summaries[key] = summarize_edit(edit)
     return {**result, **self._summaries[key]}

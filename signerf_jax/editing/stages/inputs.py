@@ -10,6 +10,7 @@ import numpy as np
 import tqdm
 
 from signerf_jax import files
+from signerf_jax.clip import tokenizer as tokenizer_lib
 from signerf_jax.diffusion import pipeline
 from signerf_jax.editing import conditioning as conditioning_lib
 from signerf_jax.editing import select as select_lib
@@ -29,13 +30,15 @@ def check_inputs(settings: EditSettings) -> list[str]:
   """Checks the edit's inputs before any stage runs, so that a mistake surfaces in a second
   rather than after the original NeRF has trained: the directories exist, the diffusion
   model's configurations parse (`pipeline.check_pipeline`; weights are checked as they load),
-  the proxy mesh loads, and the model knows the prompt's words.
+  the proxy mesh loads, and the model reads the prompts as written.
 
   Returns:
-    warnings for the user: prompt words the model's tokenizer does not know (they would become
-    its unknown token), with the words it knows.
+    warnings for the user, about the prompt and negative prompt (`tokenizer.prompt_problems`):
+    words the model's tokenizer does not know (they would become its unknown token, the
+    words it knows listed), characters it cannot encode (e.g. emoji, which a word-level
+    tokenizer drops), and the end of a prompt longer than its text encoder reads.
   Raises:
-    InputError naming the file and the parameter; for unknown words too when
+    InputError naming the file and the parameter; for those prompt problems too when
     `EditConfig.strict_prompt`.
   """
   edit = settings.edit
@@ -60,16 +63,11 @@ def check_inputs(settings: EditSettings) -> list[str]:
   warnings = []
   for field, text in (("prompt", edit.prompt), ("negative_prompt", edit.negative_prompt)):
     for tokenizer in tokenizers:
-      unknown = tokenizer.unknown_words(text)
-      if not unknown:
-        continue
-      known = getattr(tokenizer, "words", [])
-      problem = (f"the model does not know {', '.join(map(repr, unknown))} (it reads them as "
-                 f"its unknown token); it knows {len(known)} words: {' '.join(known)}")
-      if edit.strict_prompt:
-        raise InputError(problem, edit.model, f"EditConfig.{field}")
-      warnings.append(f"EditConfig.{field}: {problem}")
-  return warnings
+      for problem in tokenizer_lib.prompt_problems(tokenizer, text):
+        if edit.strict_prompt:
+          raise InputError(problem, edit.model, f"EditConfig.{field}")
+        warnings.append(f"EditConfig.{field}: {problem}")
+  return list(dict.fromkeys(warnings))  # SDXL's two tokenizers may find the same.
 
 
 def original_settings(context: EditContext) -> dict[str, Any]:

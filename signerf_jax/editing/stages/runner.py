@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-from signerf_jax import files
+from signerf_jax import files, ownership
 from signerf_jax.editing.config import EditSettings, as_json
 from signerf_jax.editing.project import EditDirectory, canonical_json
 from signerf_jax.editing.stages import evaluate, inputs, nerf_update, propagation, reference
@@ -126,14 +125,16 @@ def edit_key(directory, settings: EditSettings) -> dict[str, Any]:
 
 
 def _prepare_folder(path: Path, key: Any) -> None:
-  """Clears `path` unless it holds the outputs of a run with this key; marks it with the key.
+  """Clears what the project wrote in `path` unless it holds the outputs of a run with this
+  key; marks it with the key.
 
-  The same key means an interrupted run of the same stage: its finished files are kept.
+  The same key means an interrupted run of the same stage: its finished files are kept. Files
+  the project did not write stay wherever they are (`ownership.remove_written`).
   """
   marker = path / STAGE_KEY_FILE
   current = canonical_json(key)
   if path.is_dir() and (not marker.is_file() or marker.read_text() != current):
-    shutil.rmtree(path)
+    ownership.remove_written(path)
   path.mkdir(parents=True, exist_ok=True)
   if not marker.is_file():
     files.write_text(marker, current)
@@ -150,26 +151,29 @@ def _with_dependents(stages: list[Stage], names) -> set[str]:
 
 def _start(directory, settings: EditSettings, until: str, redo: tuple[str, ...],
            progress: bool, log: Callable[[str], None]) -> tuple[EditContext, list[Stage]]:
-  """The context and the stages to run: checks the stage names and the inputs (logging any
-  warning) and clears what `redo` asks to redo."""
+  """The context and the stages to run, once the directory is claimed: clears what `redo` asks
+  to redo."""
   stages = pipeline_stages(settings)
-  names = [stage.name for stage in stages]
+  context = EditContext(EditDirectory(directory), settings, progress)
+  context = dataclasses.replace(context, keys=stage_keys(stages, context))
+  redone = _with_dependents(stages, redo)
+  for stage in stages:
+    if stage.name in redone:
+      for folder in stage.outputs(context):
+        ownership.remove_written(folder)
+  context.directory.forget(redone)
+  return context, stages[:[stage.name for stage in stages].index(until) + 1]
+
+
+def _check(settings: EditSettings, until: str, redo: tuple[str, ...],
+           log: Callable[[str], None]) -> None:
+  """Checks the stage names and the inputs (logging any warning) before anything is written."""
+  names = [stage.name for stage in pipeline_stages(settings)]
   for name in (until, *redo):
     if name not in names:
       raise InputError(f"unknown stage {name!r} (stages: {', '.join(names)})", field="stage")
   for warning in inputs.check_inputs(settings):
     log(f"warning: {warning}")
-  context = EditContext(EditDirectory(directory), settings, progress)
-  context = dataclasses.replace(context, keys=stage_keys(stages, context))
-  context.directory.root.mkdir(parents=True, exist_ok=True)
-  files.remove_temporaries(context.directory.root)  # Left by a run killed mid-write.
-  redone = _with_dependents(stages, redo)
-  for stage in stages:
-    if stage.name in redone:
-      for folder in stage.outputs(context):
-        shutil.rmtree(folder, ignore_errors=True)
-  context.directory.forget(redone)
-  return context, stages[:names.index(until) + 1]
 
 
 def run_edit(directory, settings: EditSettings, until: str = "evaluate",
@@ -187,7 +191,23 @@ def run_edit(directory, settings: EditSettings, until: str = "evaluate",
   Returns:
     The run's context (its directory, settings and loaded inputs).
   """
-  context, stages = _start(directory, settings, until, tuple(redo), progress, log)
+  _check(settings, until, tuple(redo), log)
+  with claimed_edit(directory, settings):
+    return _run_stages(directory, settings, until, tuple(redo), progress, log)
+
+
+def claimed_edit(directory, settings: EditSettings):
+  """`ownership.claimed` for an edit directory: refused where it overlaps what the edit reads
+  (the dataset, the original run, the diffusion model); a context manager."""
+  edit = settings.edit
+  return ownership.claimed(directory, ownership.EDIT, inputs=(
+      ("data", edit.data), ("run", edit.original_run), ("model", edit.model),
+      ("controlnet", edit.controlnet)))
+
+
+def _run_stages(directory, settings: EditSettings, until: str, redo: tuple[str, ...],
+                progress: bool, log: Callable[[str], None]) -> EditContext:
+  context, stages = _start(directory, settings, until, redo, progress, log)
   for number, stage in enumerate(stages, 1):
     key = context.keys[stage.name]
     label = f"[{number}/{len(stages)}] {stage.name}"

@@ -11,7 +11,7 @@ from typing import Any
 from signerf_jax import files
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import lpips
-from signerf_jax.nerf import evaluate
+from signerf_jax.nerf import evaluate, render
 from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.validation import PositiveInt, argument_type
 
@@ -31,8 +31,8 @@ def add_options(parser: argparse.ArgumentParser) -> None:
                       help="views to evaluate; eval (the held-out views) also reports the "
                       "training views' PSNR and the gap")
   parser.add_argument("--lpips", default="", help="VGG-LPIPS weights (safetensors) for LPIPS")
-  parser.add_argument("--chunk_size", type=argument_type(PositiveInt), default=4096,
-                      help="rays rendered at once")
+  parser.add_argument("--chunk_size", type=argument_type(PositiveInt),
+                      default=render.DEFAULT_CHUNK_SIZE, help="rays rendered at once")
   add_supersampling(parser)
 
 
@@ -45,9 +45,16 @@ def add_supersampling(parser: argparse.ArgumentParser) -> None:
 
 
 def evaluate_run(run_dir: str | os.PathLike, split: str = "eval", lpips_weights: str = "",
-                 chunk_size: int = 4096, supersampling: int | None = None) -> dict[str, Any]:
+                 chunk_size: int = render.DEFAULT_CHUNK_SIZE, supersampling: int | None = None
+                 ) -> dict[str, Any]:
   """Evaluates a run on `split`; writes RUN/eval.json and, for the held-out split, the renders
-  and depth maps to RUN/eval/. Returns what eval.json holds."""
+  and depth maps to RUN/eval/. Returns what eval.json holds.
+
+  Raises:
+    InputError: among others, a chunk size whose buffers cannot fit in memory (naming
+      --chunk_size; checked before anything is loaded).
+  """
+  render.check_chunk_size(chunk_size, "--chunk_size")
   run_dir = Path(run_dir)
   trained = evaluate.load_run(run_dir)
   lpips_params = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from signerf_jax import ownership
 from signerf_jax.nerf import evaluate, render
 from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.nerf.commands.evaluate import add_supersampling
@@ -13,29 +14,40 @@ from signerf_jax.validation import PositiveInt, argument_type
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--run", required=True, help="run directory written by `signerf train`")
-  parser.add_argument("--out", default=None, help="output directory (default RUN/renders)")
+  parser.add_argument("--out", default=None,
+                      help="output directory: new, empty, or renders signerf wrote (default "
+                      "RUN/renders); writes SPLIT/<view>.png, .depth.exr, .depth.png, "
+                      ".accumulation.png and video.mp4 there")
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
                       help="which dataset views to render")
   parser.add_argument("--video", action="store_true", help="also render a camera-path video")
   parser.add_argument("--frames", type=argument_type(PositiveInt), default=60,
                       help="video length in frames")
-  parser.add_argument("--chunk_size", type=argument_type(PositiveInt), default=4096,
-                      help="rays rendered at once")
+  parser.add_argument("--chunk_size", type=argument_type(PositiveInt),
+                      default=render.DEFAULT_CHUNK_SIZE, help="rays rendered at once")
   add_supersampling(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+  render.check_chunk_size(args.chunk_size, "--chunk_size")  # Before the run is loaded.
   trained = evaluate.load_run(args.run)
-  out = Path(args.out) if args.out else Path(args.run) / "renders"
   dataset = load_recorded_dataset(trained.description, args.split)
-  outputs = render.render_cameras(trained.model, trained.variables, dataset.cameras,
-                                  args.chunk_size, supersampling=args.supersampling)
-  render.write_renders(out / args.split, dataset.image_names, outputs)
-  message = f"{dataset.num_images} {args.split} views in {out / args.split}"
-  if args.video:
-    path_cameras = render.orbit_cameras(trained.model, dataset.cameras, args.frames)
-    frames = render.render_cameras(trained.model, trained.variables, path_cameras,
-                                   args.chunk_size, supersampling=args.supersampling)["rgb"]
-    message += f", video {render.write_video(out / 'video.mp4', frames)}"
+  if args.out:
+    out = Path(args.out)
+    claim = ownership.claimed(out, ownership.RENDERS,
+                              inputs=(("run", args.run), ("data", dataset.root)))
+  else:  # Into the run, which must be one signerf made.
+    out = Path(args.run) / "renders"
+    claim = ownership.claimed(args.run, ownership.RUN, flag="run")
+  with claim:
+    outputs = render.render_cameras(trained.model, trained.variables, dataset.cameras,
+                                    args.chunk_size, supersampling=args.supersampling)
+    render.write_renders(out / args.split, dataset.image_names, outputs)
+    message = f"{dataset.num_images} {args.split} views in {out / args.split}"
+    if args.video:
+      path_cameras = render.orbit_cameras(trained.model, dataset.cameras, args.frames)
+      frames = render.render_cameras(trained.model, trained.variables, path_cameras,
+                                     args.chunk_size, supersampling=args.supersampling)["rgb"]
+      message += f", video {render.write_video(out / 'video.mp4', frames)}"
   print(f"signerf render: {message}")
   return 0

@@ -7,9 +7,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from signerf_jax import checkpoints, configs
+from signerf_jax import checkpoints, configs, ownership
 from signerf_jax.data import frame as frame_lib
-from signerf_jax.data import load_dataset
+from signerf_jax.data import load_dataset, load_views
 from signerf_jax.nerf import capacity, train, training_run
 from signerf_jax.nerf.commands import DataConfig, add_data_arguments, data_options
 from signerf_jax.nerf.commands import evaluate as evaluate_command
@@ -19,7 +19,10 @@ from signerf_jax.validation import argument_type
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--data", required=True,
                       help="dataset directory (nerfstudio, Blender, LLFF, COLMAP, NeuS/IDR)")
-  parser.add_argument("--out", required=True, help="run directory (resumed if it has a checkpoint)")
+  parser.add_argument("--out", required=True,
+                      help="run directory: new or empty (a run starts), or a run of `signerf "
+                      "train` (it resumes); writes config.gin, model.json, checkpoint.msgpack, "
+                      "eval.json and eval/ there")
   parser.add_argument("--steps", type=argument_type(train.TrainConfig, "steps"), default=None,
                       help="overrides TrainConfig.steps")
   parser.add_argument("--max_seconds", type=argument_type(train.TrainConfig, "max_seconds"),
@@ -27,16 +30,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="training time budget: the schedule spans it (resumable)")
   parser.add_argument("--skip_eval", action="store_true",
                       help="do not evaluate on the held-out views after training")
+  parser.add_argument("--start_over", action="store_true",
+                      help="train afresh in a run directory that holds a run, replacing the "
+                      "files that run wrote (others stay); without it a run is resumed, and only "
+                      "on the data it was trained on")
   add_data_arguments(parser)
   configs.add_gin_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
   run_dir = Path(args.out)
+  ownership.check_claimable(run_dir, ownership.RUN, inputs=(("data", args.data),))
+  resuming = checkpoints.has_checkpoint(run_dir) and not args.start_over
   saved_config = run_dir / configs.SAVED_CONFIG_NAME
   gin_files = args.gin_file
   # Resuming without new gin files continues with the run's own configuration.
-  if not gin_files and checkpoints.has_checkpoint(run_dir) and saved_config.is_file():
+  if not gin_files and resuming and saved_config.is_file():
     gin_files = [saved_config]
   configs.parse_gin(gin_files, args.gin_param)
   # Every setting is built (and so checked) before any work starts.
@@ -45,25 +54,30 @@ def run(args: argparse.Namespace) -> int:
   loading = {name: value for name, value in options.items() if name != "root"}
   loading["held_out"] = tuple(loading["held_out"])
   dataset = load_dataset(options["root"], split="train", **loading)
-  model = (training_run.read_model_file(run_dir)[0] if checkpoints.has_checkpoint(run_dir)
+  if not args.skip_eval:  # The held-out views are checked before the training, not after it.
+    load_views(options["root"], split="eval", **loading)
+  if resuming:
+    training_run.check_resumable(run_dir, dataset, options)
+  model = (training_run.read_model_file(run_dir)[0] if resuming
            else training_run.build_model(dataset, rules=rules))
   print(f"signerf train: {dataset.num_images} training views of {dataset.width}x"
         f"{dataset.height} px; {frame_lib.summary_line(dataset.frame)}\n"
         f"signerf train: {capacity.describe(model.capacity)}", file=sys.stderr)
-  run_dir.mkdir(parents=True, exist_ok=True)
-  configs.save_gin_config(run_dir)
-  trainer = training_run.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
-                               model=model, config=config,
-                               data_options=options)
-  statistics = trainer.last_statistics
-  message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
-             f"last batch {statistics.get('psnr', float('nan')):.2f} dB")
-  if not args.skip_eval:
-    report = evaluate_command.evaluate_run(run_dir)
-    message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "
-                f"{report['held_out']['ssim']:.3f} on {report['held_out']['num_views']} views, "
-                f"gap to training views {report['generalisation_gap_db']:.2f} dB "
-                f"({run_dir / evaluate_command.EVAL_FILE}, renders in "
-                f"{run_dir / evaluate_command.RENDERS_FOLDER})")
+  with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", args.data),)):
+    if args.start_over:
+      ownership.remove_written(run_dir)
+    configs.save_gin_config(run_dir)
+    trainer = training_run.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
+                                 model=model, config=config, data_options=options)
+    statistics = trainer.last_statistics
+    message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
+               f"last batch {statistics.get('psnr', float('nan')):.2f} dB")
+    if not args.skip_eval:
+      report = evaluate_command.evaluate_run(run_dir)
+      message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "
+                  f"{report['held_out']['ssim']:.3f} on {report['held_out']['num_views']} views, "
+                  f"gap to training views {report['generalisation_gap_db']:.2f} dB "
+                  f"({run_dir / evaluate_command.EVAL_FILE}, renders in "
+                  f"{run_dir / evaluate_command.RENDERS_FOLDER})")
   print(f"{message}; run in {run_dir}")
   return 0
