@@ -27,10 +27,10 @@ Quality comes from each edit's evaluation (background PSNR, consistency, prompt 
 shape IoU, and the edited NeRF's fit and solidity: `sweeps.edit_quality`), time is the edit's
 stages' wall time without the shared NeRF and the evaluation.
 
-Writes RESULTS/ablations.json (every variant's bindings, quality and stage seconds),
-ablations.gin (the common settings) and ablations.png (one row per ablation: each quality
-number against seconds, one point per variant). --smoke adds gin_configs/ablations_smoke.gin:
-tiny budgets, a few minutes, meaningless numbers.
+Writes into --results DIR (default outputs/experiments/) ablations.json (every variant's
+bindings, quality and stage seconds), ablations.gin (the common settings) and ablations.png
+(one row per ablation: each quality number against seconds, one point per variant). --smoke adds
+gin_configs/ablations_smoke.gin: tiny budgets, a few minutes, meaningless numbers.
 """
 
 from __future__ import annotations
@@ -56,8 +56,8 @@ from signerf_jax.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 # Proxy names of `ablations.proxies` (anything else is a mesh file or primitive:NAME).
 SPOT_DIRECTORY = Path(synthetic.DEFAULT_MESH_DIRECTORY) / "spot"
 PROXY_MESHES = {"spot_high_poly": SPOT_DIRECTORY / "spot_triangulated.obj",
@@ -246,8 +246,7 @@ def main(argv=None) -> int:
   parser.add_argument("--model", help="diffusers ControlNet inpainting pipeline directory "
                       "(default: the shipped model)")
   parser.add_argument("--out", default="outputs/ablations", help="the edit runs (resumed)")
-  parser.add_argument("--results", default=str(RESULTS),
-                      help="where ablations.json, .gin and .png are written")
+  results_dir.add_argument(parser)
   commands.add_common_arguments(parser)
   args = parser.parse_args(argv)
   start = time.perf_counter()

@@ -28,8 +28,8 @@ and, only when asked for, on a trained run (`--run`, a `signerf train` directory
     compiles (`bench_viewer.bench_run`): the median seconds to the finest frame, and a checksum
     of the last one.
 Per child: wall seconds of the work, the process's user and system CPU seconds and minor page
-faults over it, and its peak resident memory. Writes experiments/results/NAME.json with the
-machine and its load, and NAME.png: each workload's speed-up.
+faults over it, and its peak resident memory. Writes NAME.json with the machine and its load,
+and NAME.png: each workload's speed-up, into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -66,9 +66,9 @@ import bench_update  # pylint: disable=wrong-import-position
 import bench_viewer  # pylint: disable=wrong-import-position
 import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 LEGO = Path(os.environ.get("SIGNERF_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" /
                           "data")) / "nerf_synthetic" / "lego"
 # Each mode's environment: glibc's defaults; `allocator.keep_freed_memory`; or glibc's defaults
@@ -92,7 +92,7 @@ def signerf(*arguments: str) -> None:
 
 def train_lego(out: Path, *options: str) -> dict[str, Any]:
   """Trains lego at 100 px into `out` with `signerf train` options; returns its eval.json."""
-  signerf("train", "--data", str(LEGO), "--out", str(out), "--downscale", "8", *options)
+  signerf("train", "--data", str(LEGO), "--run", str(out), "--downscale", "8", *options)
   return json.loads((out / "eval.json").read_text())
 
 
@@ -255,6 +255,7 @@ def main() -> None:
   parser.add_argument("--run", type=Path, help="the trained run of nerf_eval and viewer_frames")
   parser.add_argument("--name", default="bench_allocator", help="results/<name>.json")
   parser.add_argument("--child", choices=WORKLOADS, help=argparse.SUPPRESS)
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   needing_run = set(RUN_WORKLOADS) & {*args.workloads, args.child}
   if needing_run and args.run is None:
@@ -275,9 +276,9 @@ def main() -> None:
     result["workloads"][workload] = {"runs": runs, "summary": summarise(workload, runs)}
     print(workload, result["workloads"][workload]["summary"], flush=True)
   result["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", result)
-  write_figure(RESULTS / f"{args.name}.png", result)
-  print(f"bench_allocator: results in {RESULTS / args.name}.{{json,png}}")
+  files.write_json(args.results / f"{args.name}.json", result)
+  write_figure(args.results / f"{args.name}.png", result)
+  print(f"bench_allocator: results in {args.results / args.name}.{{json,png}}")
 
 
 if __name__ == "__main__":

@@ -21,8 +21,9 @@ float32 sampler's options (`sampler.FLOAT32_COMPILER_OPTIONS`):
              changes there.
 Each program's calls after a warm-up are recorded with their median, and the median of the
 per-round speed-ups over the ALL_KEYS program (its seconds over the other's), with their range,
-and the largest difference between the programs' outputs. Writes experiments/results/NAME.json
-with the machine and load, and NAME.png: the speed-ups (when a part was timed).
+and the largest difference between the programs' outputs. Writes NAME.json with the machine and
+load, and NAME.png: the speed-ups (when a part was timed), into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ import numpy as np
 import bench_winograd_compile
 import machine
 import plotting
+import results_dir
 from bench_diffusion import SD15_UNET
 from signerf_jax import files
 from signerf_jax.diffusion import model_configs, pipeline, sampler, weights
@@ -49,7 +51,6 @@ from signerf_jax.diffusion.attention import AttentionOptions, dot_product_attent
 from signerf_jax.diffusion.unet import UNet2DCondition
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
-RESULTS = Path(__file__).resolve().parent / "results"
 ALL_KEYS = 2**31
 KERNEL = AttentionOptions()
 XLA = dataclasses.replace(KERNEL, cpu_kernel=False)
@@ -194,6 +195,7 @@ def main() -> None:
   parser.add_argument("--attention_repeats", type=int, default=15,
                       help="timed calls of each single-attention program")
   parser.add_argument("--name", default="bench_attention", help="results/<name>.json")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   result = {"what": __doc__.split("\n\n")[2].replace("\n", " "),
             "default": dataclasses.asdict(KERNEL), "machine": machine.record(),
@@ -202,9 +204,9 @@ def main() -> None:
     result["parts"][part] = PARTS[part](
         args.attention_repeats if part == "attention" else args.repeats)
   result["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", result)
-  write_figure(RESULTS / f"{args.name}.png", result)
-  print(f"bench_attention: results in {RESULTS / args.name}.{{json,png}}")
+  files.write_json(args.results / f"{args.name}.json", result)
+  write_figure(args.results / f"{args.name}.png", result)
+  print(f"bench_attention: results in {args.results / args.name}.{{json,png}}")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ convolution, the im2col matmul, Winograd's F(2x2, 3x3) and F(4x4, 3x3) (float32)
 which one `layers.conv2d` picks, each one's compilation seconds and its largest difference from
 XLA's result relative to that result's largest magnitude. The algorithms run in turn, repeat
 after repeat, so a change of load slows them alike; the best of the repeats is reported.
-Writes experiments/results/NAME.json with the machine and load.
+Writes NAME.json with the machine and load into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -15,17 +15,15 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import machine
+import results_dir
 from signerf_jax import files
 from signerf_jax.diffusion import layers
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 # (name, batch, height, width, in channels, out channels): the UNet's levels at a 64x64 and a
 # 32x32 latent with classifier-free guidance's batch of 2 (first resnet convolutions, and the up
@@ -79,6 +77,7 @@ def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--repeats", type=int, default=5)
   parser.add_argument("--name", default="bench_convolutions")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   results = {"what": __doc__.splitlines()[0], "date": time.strftime("%Y-%m-%d"),
              "machine": machine.record(), "repeats": args.repeats, "layers": []}
@@ -88,7 +87,7 @@ def main() -> None:
     print(name, {key: round(value, 4) for key, value in row["seconds"].items()},
           "chosen", row["chosen"], "fastest", row["fastest"], flush=True)
   results["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", results)
+  files.write_json(args.results / f"{args.name}.json", results)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,8 @@ machine.
 
     python experiments/bench_diffusion.py [--gin_file bench_diffusion] [--gin_param ...]
 
-Writes experiments/results/bench_diffusion.json and bench_diffusion.gin (atomically).
+Writes bench_diffusion.json and bench_diffusion.gin (atomically) into --results DIR (default
+outputs/experiments/), or --output JSON and the .gin beside it.
 """
 
 from __future__ import annotations
@@ -42,13 +43,13 @@ import jax.numpy as jnp
 import numpy as np
 
 import machine
+import results_dir
 from signerf_jax import configs, files
 from signerf_jax.diffusion import model_configs, sampler, weights
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.controlnet import ControlNet
 from signerf_jax.diffusion.unet import UNet2DCondition
 
-RESULTS = Path(__file__).resolve().parent / "results"
 # The square fp32 matmul that measures the peak (2 n^3 FLOPs; ~0.1 s here), and how often.
 PEAK_MATMUL_SIZE = 2048
 PEAK_REPEATS = 10
@@ -306,7 +307,9 @@ def benchmark(latent_sizes=(32, 64), batch: int = 2, repeats: int = 5, threads: 
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   configs.add_gin_arguments(parser)
-  parser.add_argument("--output", default=str(RESULTS / "bench_diffusion.json"))
+  results_dir.add_argument(parser)
+  parser.add_argument("--output", metavar="JSON",
+                      help="the json to write (default: DIR/bench_diffusion.json)")
   args = parser.parse_args(argv)
   configs.parse_gin(args.gin_file or ["bench_diffusion"], args.gin_param)
   load_before = os.getloadavg()
@@ -320,7 +323,7 @@ def main(argv=None) -> int:
       "note": "JAX and torch runs interleave, so other jobs (see the load averages) slow both",
   }
   results["gin_config"] = gin.config_str()
-  output = Path(args.output)
+  output = Path(args.output or args.results / "bench_diffusion.json")
   files.write_json(output, results)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   print(f"wrote {output}")

@@ -11,7 +11,8 @@ per round, in turn, after a warm-up (bench_attention.alternate), for `repeats` r
 levels 0-2). Reported per shape and revision: the seconds of every round, their median, GFLOP/s
 (4 B T^2 H D), the median of the paired speed-ups over the first revision with their range, and the
 largest output difference from the first revision.
-Writes experiments/results/<name>.json with the machine and its load.
+Writes <name>.json with the machine and its load into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -26,11 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import machine
+import results_dir
 from bench_attention import alternate, compiled
 from signerf_jax import files
 from signerf_jax.diffusion import cpu_attention
 
-RESULTS = Path(__file__).resolve().parent / "results"
 REPOSITORY = Path(__file__).resolve().parent.parent
 KERNEL_PATH = "signerf_jax/diffusion/cpu_attention.cc"  # In this checkout, as git names it.
 
@@ -81,6 +82,7 @@ def main() -> None:
                       default=["2x4096x8x40", "2x1024x8x80", "2x256x8x160"])
   parser.add_argument("--repeats", type=int, default=21, help="timed rounds")
   parser.add_argument("--name", default="bench_kernel_revisions", help="results/<name>.json")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   if reason := cpu_attention.unmet_requirement():
     raise SystemExit(f"the fused kernel cannot run here: {reason}")
@@ -100,8 +102,8 @@ def main() -> None:
                             found["speedup_over_baseline"])
                  for revision, found in result["shapes"][text]["revisions"].items()}, flush=True)
   result["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", result)
-  print(f"bench_kernel_revisions: results in {RESULTS / args.name}.json")
+  files.write_json(args.results / f"{args.name}.json", result)
+  print(f"bench_kernel_revisions: results in {args.results / args.name}.json")
 
 
 if __name__ == "__main__":

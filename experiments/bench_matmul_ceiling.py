@@ -14,7 +14,8 @@ FlopCounterMode on the diffusers UNet: convolutions counted as direct ones) over
 the peak, is the fraction the UNet would reach if its softmax, normalisations, Winograd
 transforms and copies took no time: the ceiling its own matmuls put on the goal. The forward
 itself is timed in the same run (best of three), and the peak is the higher of two readings, one
-before and one after. Writes experiments/results/NAME.json with the machine and load.
+before and one after. Writes NAME.json with the machine and load into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import math
 import os
 import string
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -33,12 +33,12 @@ import numpy as np
 from jax import lax
 
 import machine
+import results_dir
 from bench_diffusion import SD15_UNET, hide_unloadable_torchvision, peak_meter, reference_flops
 from signerf_jax import files
 from signerf_jax.diffusion import model_configs, weights
 from signerf_jax.diffusion.unet import UNet2DCondition
 
-RESULTS = Path(__file__).resolve().parent / "results"
 BATCH = 2
 
 
@@ -192,6 +192,7 @@ def main() -> None:
   parser.add_argument("--latent_sizes", type=int, nargs="+", default=[32, 64])
   parser.add_argument("--repeats", type=int, default=5)
   parser.add_argument("--name", default="bench_matmul_ceiling")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   hide_unloadable_torchvision()
   import diffusers  # pylint: disable=g-import-not-at-top
@@ -214,7 +215,7 @@ def main() -> None:
     result["fraction_of_peak"] = fractions_of_peak(result, peak)
     print(size, result["fraction_of_peak"], flush=True)
   record["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", record)
+  files.write_json(args.results / f"{args.name}.json", record)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@ side by side in one run, plus the depth error of the JAX renderer against trimes
 
   python experiments/bench_mesh_depth.py [--gin_param 'benchmark.num_views = 4']
 
-Writes experiments/results/bench_mesh_depth.json and .gin (the full configuration).
+Writes bench_mesh_depth.json and .gin (the full configuration) into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -34,8 +35,9 @@ from signerf_jax.errors import InputError
 from signerf_jax.geometry import mesh as mesh_lib
 from signerf_jax.geometry import mesh_depth
 
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
+
 REPOSITORY = Path(__file__).resolve().parent.parent
-RESULTS = REPOSITORY / "experiments" / "results"
 DEFAULT_MESH = REPOSITORY.parent / "shared" / "data" / "meshes" / "spot" / "spot_triangulated.obj"
 
 
@@ -148,20 +150,21 @@ def benchmark(mesh_path: str = str(DEFAULT_MESH), num_views: int = 8, size: int 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   configs.add_gin_arguments(parser)
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
   try:
     result = benchmark()
   except InputError as error:  # e.g. the shared data is absent
     raise SystemExit(f"bench_mesh_depth: {error} (set benchmark.mesh_path)") from None
-  files.write_json(RESULTS / "bench_mesh_depth.json", result)
-  files.write_text(RESULTS / "bench_mesh_depth.gin", gin.operative_config_str())
+  files.write_json(args.results / "bench_mesh_depth.json", result)
+  files.write_text(args.results / "bench_mesh_depth.gin", gin.operative_config_str())
   print(f"jax {result['jax']['views_per_second']:.2f} views/s, trimesh "
         f"{result['trimesh']['views_per_second']:.3f} views/s "
         f"(x{result['speedup_jax_over_trimesh']:.0f}), embree "
         f"{result['trimesh_embree'].get('views_per_second', float('nan')):.2f} views/s; "
         f"max relative depth error {result['jax_vs_trimesh_error']['max_relative_depth_error']:.1e}"
-        f" -> {RESULTS / 'bench_mesh_depth.json'}")
+        f" -> {args.results / 'bench_mesh_depth.json'}")
 
 
 if __name__ == "__main__":

@@ -11,9 +11,9 @@ Scenes (in ../shared/data; `SIGNERF_SHARED_DATA` points elsewhere):
   lego_12                 the same with 12 training views (0, 8, ..., 88 of the 100).
 Each trains once with the schedule spanning its longest time and is evaluated on its held-out
 views at every time in `seconds`, and on 16 training views (the generalisation gap) at the last
-(training time excludes evaluation; it includes compilation). Writes
-experiments/results/bench_nerf.{json,png,gin} and bench_nerf_<scene>.png (held-out views: the
-photo, the render and its median depth); `--name STEM` writes STEM.* and STEM_<scene>.png.
+(training time excludes evaluation; it includes compilation). Writes bench_nerf.{json,png,gin}
+and bench_nerf_<scene>.png (held-out views: the photo, the render and its median depth) into
+--results DIR (default outputs/experiments/); `--name STEM` writes STEM.* and STEM_<scene>.png.
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from signerf_jax.nerf import capacity, evaluate, render, train, training_run
 
 import machine  # experiments/machine.py and plotting.py (this script's directory is on sys.path)
 import plotting
+import results_dir
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
                                   Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -145,6 +145,7 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
                   seconds: dict[str, Sequence[float]] | None = None,
                   machine_shared: bool = False,
                   output_stem: str = "bench_nerf",
+                  results: Path = results_dir.DEFAULT,
                   supersampling: dict[str, int] | None = None) -> dict[str, Any]:
   """Runs every scene.
 
@@ -152,8 +153,9 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
     scenes: names from SCENES.
     seconds: per scene, the training times at which to evaluate.
     machine_shared: record whether other jobs shared the CPU (timings are then pessimistic).
-    output_stem: results/<stem>_<scene>.png holds each scene's held-out views, and
-      results/<stem>.partial.json the result so far after every scene.
+    output_stem: <results>/<stem>_<scene>.png holds each scene's held-out views, and
+      <results>/<stem>.partial.json the result so far after every scene.
+    results: the folder written into.
     supersampling: per scene, rays per pixel side of a second held-out evaluation at the last
       time (`render.render_cameras`; anti-aliasing at that many squared times the rendering).
   """
@@ -167,9 +169,9 @@ def run_benchmark(scenes: Sequence[str] = tuple(SCENES),
   }
   for name in scenes:
     result["scenes"][name] = train_and_measure(name, seconds.get(name, (60, 120, 300, 600)),
-                                               RESULTS / f"{output_stem}_{name}.png", config,
+                                               results / f"{output_stem}_{name}.png", config,
                                                rules, supersampling.get(name))
-    files.write_json(RESULTS / f"{output_stem}.partial.json", result)
+    files.write_json(results / f"{output_stem}.partial.json", result)
   result["load_average_at_end"] = os.getloadavg()
   return result
 
@@ -188,15 +190,16 @@ def main() -> None:
   allocator.keep_freed_memory()  # As `signerf train` and `signerf render` do.
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   configs.add_gin_arguments(parser)
-  parser.add_argument("--name", default="bench_nerf", help="output file stem in results/")
+  parser.add_argument("--name", default="bench_nerf", help="output file stem in DIR")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   configs.parse_gin(["bench_nerf", *args.gin_file], args.gin_param)
-  result = run_benchmark(output_stem=args.name)
-  files.write_text(RESULTS / f"{args.name}.gin", gin.config_str())
-  files.write_json(RESULTS / f"{args.name}.json", result)
-  plot(result, RESULTS / f"{args.name}.png")
-  (RESULTS / f"{args.name}.partial.json").unlink(missing_ok=True)
-  print(f"bench_nerf: results in {RESULTS / args.name}.json and .png")
+  result = run_benchmark(output_stem=args.name, results=args.results)
+  files.write_text(args.results / f"{args.name}.gin", gin.config_str())
+  files.write_json(args.results / f"{args.name}.json", result)
+  plot(result, args.results / f"{args.name}.png")
+  (args.results / f"{args.name}.partial.json").unlink(missing_ok=True)
+  print(f"bench_nerf: results in {args.results / args.name}.json and .png")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ For each run (a `signerf train` directory):
     before), in the same process, so that a noisy machine slows both alike;
   * training: `train_steps` steps from its checkpoint on its training views, after
     `warmup_steps` untimed ones (compilation); rays/s and field samples/s.
-Writes experiments/results/<name>.json with the machine and its load.
+Writes <name>.json with the machine and its load into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.commands import load_recorded_dataset
 
 import machine  # experiments/machine.py (this script's directory is on sys.path)
+import results_dir
 
-RESULTS = Path(__file__).resolve().parent / "results"
 CHUNK_SIZE = 4096
 
 
@@ -168,6 +169,7 @@ def main() -> None:
                       help="also compare with the occupancy sampler's whole march, N times in "
                            "turn")
   parser.add_argument("--name", default="bench_nerf_throughput", help="results/<name>.json")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   result: dict[str, Any] = {
       "machine": machine.record(),
@@ -179,8 +181,8 @@ def main() -> None:
                                        args.whole_march)
     print(name, result["runs"][name], flush=True)
   result["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", result)
-  print(f"bench_nerf_throughput: results in {RESULTS / args.name}.json")
+  files.write_json(args.results / f"{args.name}.json", result)
+  print(f"bench_nerf_throughput: results in {args.results / args.name}.json")
 
 
 if __name__ == "__main__":

@@ -6,9 +6,9 @@ with every sample and with fewer field samples (`Capacity.render_sample_fraction
 
 For each run (a `signerf train` directory) and each fraction: every held-out view rendered by
 `nerf.render.render_cameras` (chunks of 4096 rays) after one untimed view (compilation); rays/s
-and the views' mean PSNR. Entries are added to experiments/results/<name>.json under NAME (an
-existing NAME is replaced), with the machine, its load and the code's commit, and the json's
-entries are drawn as PSNR against rays/s (<name>.png).
+and the views' mean PSNR. Entries are added to <name>.json in --results DIR (default
+outputs/experiments/) under NAME (an existing NAME is replaced), with the machine, its load and
+the code's commit, and the json's entries are drawn as PSNR against rays/s (<name>.png).
 
 It uses only APIs that older checkouts of this project have, so that the renderer as it was can
 be measured on the same machine in the same hour: run it with `PYTHONPATH=<an older checkout>`
@@ -38,8 +38,8 @@ from signerf_jax.nerf.commands import load_recorded_dataset
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 CHUNK_SIZE = 4096
 
 
@@ -102,8 +102,9 @@ def main() -> None:
   parser.add_argument("--run", action="append", required=True, help="NAME=RUN_DIR")
   parser.add_argument("--fractions", type=float, nargs="+", default=[1.0])
   parser.add_argument("--name", default="bench_render_quality")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
-  path = RESULTS / f"{args.name}.json"
+  path = args.results / f"{args.name}.json"
   result = json.loads(path.read_text()) if path.exists() else {
       "what": __doc__.split("\n\n")[0], "entries": {}}
   for spec in args.run:

@@ -14,7 +14,8 @@ for each compute precision asked for (bfloat16: the weights stored in bfloat16, 
 first and their median, the median ratio, and the largest difference between the two programs'
 images; not compilation seconds, which in one process depend on the order (the first program
 compiled pays the process's one-off costs; bench_winograd_compile.py measures them in fresh
-processes). Writes experiments/results/NAME.json with the machine and load.
+processes). Writes NAME.json with the machine and load into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ import argparse
 import os
 import statistics
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -31,11 +31,11 @@ import numpy as np
 
 import bench_winograd_compile
 import machine
+import results_dir
 from signerf_jax import files
 from signerf_jax.diffusion import pipeline, sampler
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
-RESULTS = Path(__file__).resolve().parent / "results"
 PRECISIONS = {"float32": (np.float32, jnp.float32), "bfloat16": (jnp.bfloat16, jnp.bfloat16)}
 # Batch -> whether its program uses Winograd convolutions, as the preview and the update do.
 BATCHES = {1: False, 4: True}
@@ -76,6 +76,7 @@ def main() -> None:
   parser.add_argument("--precisions", nargs="+", choices=list(PRECISIONS),
                       default=list(PRECISIONS))
   parser.add_argument("--name", default="bench_sampler_options")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   record = {"what": __doc__.split("\n\n")[2].replace("\n", " "),
             "compiler_options": sampler.FLOAT32_COMPILER_OPTIONS, "machine": machine.record(),
@@ -88,7 +89,7 @@ def main() -> None:
                              **measure(loaded, batch, winograd, args.repeats)})
       print(record["runs"][-1], flush=True)
   record["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", record)
+  files.write_json(args.results / f"{args.name}.json", record)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@ below, and the one-view-at-a-time loop (batch 1) is the reference.
 With the shipped model at its native tile size and the default 2 x 3 sheet, on random views
 (the cost does not depend on the pixels). Views whose mask is empty never reach the update (the
 stage passes only the views that show the selection: `EditContext.visible_views`), so they cost
-nothing. Writes experiments/results/NAME.json (default bench_update) with the machine and load.
+nothing. Writes NAME.json (default bench_update) with the machine and load into --results DIR
+(default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import dataclasses
 import os
 import platform
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -29,7 +29,7 @@ from signerf_jax.editing import crops, generation, update
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.sheet import SheetLayout
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 
 def random_views(count: int, size: int, rng: np.random.Generator) -> update.SlotViews:
@@ -62,6 +62,7 @@ def main() -> None:
                       help="views per device (one device here)")
   parser.add_argument("--steps", type=int, default=20, help="sampler steps")
   parser.add_argument("--name", default="bench_update")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   load_before = os.getloadavg()
   model = str(DEFAULT_MODEL_DIR)
@@ -86,8 +87,8 @@ def main() -> None:
     # A batch of 1 is exactly one sheet-sized sampling: the per-view cost against it.
     result["per_view_over_one_sheet"] = (None if one_at_a_time is None else
                                          round(result["seconds_per_view"] / one_at_a_time, 3))
-  RESULTS.mkdir(exist_ok=True)
-  files.write_json(RESULTS / f"{args.name}.json", {
+  args.results.mkdir(parents=True, exist_ok=True)
+  files.write_json(args.results / f"{args.name}.json", {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),
                   "cpu_count": os.cpu_count(), "jax_devices": str(jax.devices()),
                   "load_average_before": load_before, "load_average_after": os.getloadavg()},

@@ -6,8 +6,8 @@ frame and to each finer one, and the rays per second behind them.
 For each run (`signerf train`'s directory) the viewer's own renderer (`viewer.progressive`)
 renders `--views` poses of the run's training cameras with a 16:9 canvas at the viewer's frame
 heights, after one warm-up view (compilation: reported apart, as `first_view_seconds`).
-Writes experiments/results/NAME.json (with the machine and its load) and NAME.png (one view's
-frames, coarse to fine, per run).
+Writes NAME.json (with the machine and its load) and NAME.png (one view's frames, coarse to
+fine, per run) into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.viewer import progressive
 from signerf_jax.viewer.cameras import pose_of_camera
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
+
 CANVAS_ASPECT = 16 / 9
 
 
@@ -75,6 +76,7 @@ def main() -> None:
   parser.add_argument("--runs", nargs="+", required=True, help="trained run directories")
   parser.add_argument("--views", type=int, default=5, help="timed views per run")
   parser.add_argument("--name", default="bench_viewer", help="results file stem")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   load_before = os.getloadavg()
   results, rows, labels = [], [], []
@@ -87,14 +89,14 @@ def main() -> None:
                  for frame in frames])
     labels.append([f"{run_dir.parent.name}/{run_dir.name}: {frame.rgb.shape[0]} px, "
                    f"{frame.seconds:.2f} s" for frame in frames])
-  RESULTS.mkdir(exist_ok=True)
-  files.write_json(RESULTS / f"{args.name}.json", {
+  args.results.mkdir(parents=True, exist_ok=True)
+  files.write_json(args.results / f"{args.name}.json", {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),
                   "cpu_count": os.cpu_count(), "jax_devices": str(jax.devices()),
                   "load_average_before": load_before, "load_average_after": os.getloadavg()},
       "heights": list(progressive.HEIGHTS), "chunk_size": progressive.CHUNK_SIZE,
       "canvas_aspect": CANVAS_ASPECT, "runs": results})
-  files.write_image(RESULTS / f"{args.name}.png", figures.image_grid(rows, labels))
+  files.write_image(args.results / f"{args.name}.png", figures.image_grid(rows, labels))
 
 
 if __name__ == "__main__":

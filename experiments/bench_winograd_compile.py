@@ -12,7 +12,8 @@ seconds, the first call's and the median of three later calls' seconds, which al
 `layers.conv2d` chose how often, and where the compiled program computes the Winograd kernel
 transforms (G g G^T of every Winograd layer's weights): in the loop body they would be redone at
 every denoising step for weights that do not change; XLA's loop-invariant code motion hoists them
-to the program's entry. Writes experiments/results/NAME.json with the machine and load.
+to the program's entry. Writes NAME.json with the machine and load into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -26,17 +27,16 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
 
 import machine
+import results_dir
 from signerf_jax import files
 from signerf_jax.diffusion import layers, pipeline, sampler
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
-RESULTS = Path(__file__).resolve().parent / "results"
 HEIGHT, WIDTH = 128, 192  # The shipped model's 2 x 3 sheet of 64-px tiles.
 PROMPT = "a teddy bear"
 
@@ -115,6 +115,7 @@ def main() -> None:
   parser.add_argument("--name", default="bench_winograd_compile")
   parser.add_argument("--child", nargs=2, type=int, metavar=("BATCH", "WINOGRAD"),
                       help=argparse.SUPPRESS)
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   if args.child:
     print(json.dumps(measure(args.child[0], bool(args.child[1]))))
@@ -137,7 +138,7 @@ def main() -> None:
           for field in ("compile_seconds", "first_call_seconds", "later_call_seconds")}
       for batch in (1, 4) for winograd in (0, 1)}
   record["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", record)
+  files.write_json(args.results / f"{args.name}.json", record)
   print(json.dumps(record["median"], indent=1))
 
 

@@ -9,9 +9,9 @@ independent views and slot updates, whether a sheet carries shape to its slot (b
 and seconds per generation call
 (`signerf_jax.default_model.evaluation`, whose docstring defines each measure), on the "eval"
 split of the dataset. Writes
-  * --output (default experiments/results/default_model.json): the measures, pass/fail of each
-    gate with its threshold, timings and the machine (CPU count, load average), and the full gin
-    config beside it (.gin);
+  * --output (default: default_model.json in --results DIR, default outputs/experiments/): the
+    measures, pass/fail of each gate with its threshold, timings and the machine (CPU count, load
+    average), and the full gin config beside it (.gin);
   * <output stem>_samples.png: single views (input, mask, control, generation per ControlNet
     scale, the object found at scale 1, the truth), sheets (input, mask, control, generated
     sheet, slot update, the same views generated independently) and shape transfer (one true
@@ -44,9 +44,9 @@ from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
 REPOSITORY = Path(__file__).resolve().parent.parent
-RESULTS = REPOSITORY / "experiments" / "results"
 DEFAULT_DATA = REPOSITORY / "outputs" / "default_model_data"
 
 
@@ -175,7 +175,9 @@ def main(argv=None) -> int:
                       help="a diffusers ControlNet inpainting pipeline (default: the shipped model)")
   parser.add_argument("--data", default=str(DEFAULT_DATA),
                       help="the generated dataset (experiments/make_default_model_data.py)")
-  parser.add_argument("--output", default=str(RESULTS / "default_model.json"))
+  results_dir.add_argument(parser)
+  parser.add_argument("--output", metavar="JSON",
+                      help="the json to write (default: DIR/default_model.json)")
   configs.add_gin_arguments(parser)
   args = parser.parse_args(argv)
   start = time.monotonic()
@@ -220,7 +222,7 @@ def main(argv=None) -> int:
                  "total_wall_seconds": time.monotonic() - start},
       "machine": machine(load_at_start),
       "settings": dataclasses.asdict(settings), "generation_options": dataclasses.asdict(options)}
-  output = Path(args.output)
+  output = Path(args.output or args.results / "default_model.json")
   files.write_json(output, result)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   figure_path = output.with_name(f"{output.stem}_samples.png")

@@ -10,8 +10,8 @@ random fraction of a step; sometimes during start-up), and started again (resumi
 finishes. After each kill
 the run directory must hold a checkpoint that reads (the latest, or the previous one with a
 warning) or none yet. At the end the two runs' parameters and optimiser states are compared
-exactly, and the killed run's directory is searched for temporary files. Writes
-experiments/results/kill_resume.json.
+exactly, and the killed run's directory is searched for temporary files. Writes kill_resume.json
+into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ import numpy as np
 
 from signerf_jax import checkpoints, files
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
+
 STEPS = 400
 TRAIN_FLAGS = ["--steps", str(STEPS), "--skip_eval",
                "--gin_param", "TrainConfig.checkpoint_every_steps = 1",
@@ -79,6 +80,7 @@ def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--kills", type=int, default=12)
   parser.add_argument("--seed", type=int, default=0)
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   rng = random.Random(args.seed)
   load_at_start = os.getloadavg()
@@ -89,14 +91,14 @@ def main() -> None:
                          "synthetic_cameras.image_size = 24"), check=True,
                  capture_output=True)
   start = time.perf_counter()
-  subprocess.run(signerf("train", "--data", str(scene), "--out", str(work / "reference"),
+  subprocess.run(signerf("train", "--data", str(scene), "--run", str(work / "reference"),
                          *TRAIN_FLAGS), check=True, capture_output=True)
   uninterrupted_seconds = time.perf_counter() - start
 
   killed = work / "killed"
   kills = []
   while True:
-    process = subprocess.Popen(signerf("train", "--data", str(scene), "--out", str(killed),
+    process = subprocess.Popen(signerf("train", "--data", str(scene), "--run", str(killed),
                                        *TRAIN_FLAGS), stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL)
     if len(kills) < args.kills:
@@ -134,8 +136,8 @@ def main() -> None:
                   "load_average_at_start": load_at_start,
                   "load_average_at_end": os.getloadavg()},
   }
-  RESULTS.mkdir(parents=True, exist_ok=True)
-  files.write_json(RESULTS / "kill_resume.json", result)
+  args.results.mkdir(parents=True, exist_ok=True)
+  files.write_json(args.results / "kill_resume.json", result)
   print(f"{len(kills)} kills; resumed run identical to the uninterrupted one: {identical}; "
         f"temporary files left: {leftovers or 'none'}")
 

@@ -4,7 +4,8 @@
         [--gin_file default_model_data] [--gin_param 'default_model_data.num_sheets = 400' ...]
 
 Makes (or resumes) the dataset in DIR (`signerf_jax.default_model.dataset_builder`), then writes
-experiments/results/default_model_data.json (and .gin, the full configuration):
+default_model_data.json (and .gin, the full configuration) into --results DIR (default
+outputs/experiments/), or --output JSON:
   * per kind: samples per second in one process (from the time spent making each shard, so a
     resumed run still reports it), bytes per sample, and the size and one-process time
     extrapolated to 4,000 sheets + 8,000 single views (the issue's example);
@@ -32,7 +33,8 @@ from signerf_jax import configs, files
 from signerf_jax.default_model import dataset_builder, samples
 from signerf_jax.metrics import colors
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
+
 EXTRAPOLATE_TO = {"sheets": 4000, "singles": 8000}
 
 
@@ -81,7 +83,9 @@ def main(argv=None) -> int:
   parser.add_argument("--out", help="dataset directory (else default_model_data.output_directory)")
   parser.add_argument("--workers", type=int, default=1, help="processes making shards")
   configs.add_gin_arguments(parser)
-  parser.add_argument("--output", default=str(RESULTS / "default_model_data.json"))
+  results_dir.add_argument(parser)
+  parser.add_argument("--output", metavar="JSON",
+                      help="the json to write (default: DIR/default_model_data.json)")
   args = parser.parse_args(argv)
   configs.parse_gin(args.gin_file or ["default_model_data"], args.gin_param)
   settings = dataset_builder.DataSettings()
@@ -121,7 +125,7 @@ def main(argv=None) -> int:
                   "load_average_after": os.getloadavg()[0]},
       "gin_config": gin.config_str(),
   }
-  output = Path(args.output)
+  output = Path(args.output or args.results / "default_model_data.json")
   files.write_json(output, results)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   print(f"wrote {output}: {manifest['bytes'] / 1e6:.1f} MB in {directory}")

@@ -17,7 +17,7 @@ appears (the first candidate sheet), when the command ends (every candidate) and
 seconds. Given several source trees (`--sources LABEL=DIR`, e.g. a git worktree of an older
 commit), their runs alternate, so that they are compared side by side on the same machine
 state.
-Writes experiments/results/NAME.json.
+Writes NAME.json into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from signerf_jax import files, ownership
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
 import real_scene_edit  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 PROMPT = "a teddy bear"
 
 
@@ -95,6 +95,7 @@ def timed_preview(source: Path, edit: Path, placed: Path, cache: Path,
     shutil.copytree(initial_cache, cache)
   preview_png = edit / "preview" / "preview.png"
   start = time.perf_counter()
+  # `--out`, not `--edit`: the older checkouts compared know only that spelling (still accepted).
   process = launch(source, cache, "preview", "--out", edit.resolve(), "--gin_file", placed,
                    "--prompt", PROMPT, "--quiet")
   first = None
@@ -122,6 +123,7 @@ def main() -> None:
                       help="start each run from the cache training and placement leave "
                            "(default: an empty cache)")
   parser.add_argument("--name", default="preview_latency", help="the results file's name")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   placed = Path(args.edit) / "config.gin"
   if not placed.is_file():
@@ -143,8 +145,8 @@ def main() -> None:
   summary = {label: {key: statistics.median(run[key] for run in measured)
                      for key in ("first_candidate_seconds", "all_candidates_seconds")}
              for label, measured in runs.items()}
-  RESULTS.mkdir(parents=True, exist_ok=True)
-  files.write_json(RESULTS / f"{args.name}.json", {
+  args.results.mkdir(parents=True, exist_ok=True)
+  files.write_json(args.results / f"{args.name}.json", {
       "what": "`signerf preview` on a placed edit of a trained NeRF, each run a new process with "
               "a compilation cache that starts empty or (after_training) as `signerf train` and "
               "`signerf place` of the scene leave it: seconds until preview.png first appears "

@@ -10,7 +10,8 @@ measures the candidates against each other: the mean absolute RGB difference of 
 candidates inside the inpainting mask and outside it (the pasted-back renders), and the palette
 colour each candidate gives the object (the dominant colour of its tiles' pixels on the proxy's
 visible silhouette, as the edit's prompt-colour evaluation takes it).
-Writes experiments/results/preview_seeds.json and preview_seeds.png (each prompt's candidates).
+Writes preview_seeds.json and preview_seeds.png (each prompt's candidates) into --results DIR
+(default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ from signerf_jax.editing import figures, sheet
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
-from real_scene_edit import signerf, stacked  # pylint: disable=wrong-import-position
-
-RESULTS = Path(__file__).resolve().parent / "results"
+import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
+from real_scene_edit import signerf  # pylint: disable=wrong-import-position
 
 
 def pairwise_difference(candidates: np.ndarray, where: np.ndarray) -> dict[str, float]:
@@ -78,6 +79,7 @@ def main() -> None:
   parser.add_argument("--prompts", nargs="+", default=["a teddy bear", "a red teddy bear"])
   parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
   parser.add_argument("--out", default="outputs/preview_seeds")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   placed = Path(args.edit) / "config.gin"
   if not placed.is_file():
@@ -88,20 +90,20 @@ def main() -> None:
   for prompt in args.prompts:
     edit = Path(args.out) / prompt.replace(" ", "_")
     ownership.clear(edit, ownership.EDIT)
-    seconds, _ = signerf(cache, "preview", "--out", edit, "--gin_file", placed, "--prompt",
+    seconds, _ = signerf(cache, "preview", "--edit", edit, "--gin_file", placed, "--prompt",
                          prompt, "--seeds", *args.seeds, "--quiet")
     results[prompt] = {**measure(edit, args.seeds), "preview_seconds": seconds}
     print(f"{prompt!r}: {results[prompt]}", flush=True)
     images.append(figures.image_grid([[files.read_image(edit / "preview" / "preview.png")]],
                                      [[f"--prompt '{prompt}'"]]))
-  RESULTS.mkdir(parents=True, exist_ok=True)
-  files.write_json(RESULTS / "preview_seeds.json", {
+  args.results.mkdir(parents=True, exist_ok=True)
+  files.write_json(args.results / "preview_seeds.json", {
       "what": "the preview's candidate sheets compared with each other, per prompt (mean "
               "absolute RGB difference of the pairs inside and outside the inpainting mask; "
               "the object's palette colour per candidate)",
       "edit": str(Path(args.edit).resolve()), "seeds": args.seeds, "prompts": results,
       "machine": {**record, "load_average_at_end": os.getloadavg()}})
-  files.write_image(RESULTS / "preview_seeds.png", stacked(images))
+  files.write_image(args.results / "preview_seeds.png", plotting.stacked(images))
 
 
 if __name__ == "__main__":

@@ -9,13 +9,12 @@ the same tile size. The selection masks come from the geometry code itself: an a
 
   python experiments/measure_sheet_crops.py [--gin_param 'measure.tile_size = 512']
 
-Writes experiments/results/measure_sheet_crops.json and .gin.
+Writes measure_sheet_crops.json and .gin into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import gin
 import jax.numpy as jnp
@@ -30,7 +29,7 @@ from signerf_jax.geometry import mesh_depth
 from signerf_jax.geometry import primitives
 from signerf_jax.geometry import selection
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 
 def orbit(num_views, distance, width, height, focal, elevation_degrees=30.0, arc_degrees=360.0,
@@ -114,16 +113,17 @@ def measure(tile_size: int = 256, margin: float = 0.15, max_upscale: float = 2.0
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   configs.add_gin_arguments(parser)
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
   result = measure()
-  files.write_json(RESULTS / "measure_sheet_crops.json", result)
-  files.write_text(RESULTS / "measure_sheet_crops.gin", gin.operative_config_str())
+  files.write_json(args.results / "measure_sheet_crops.json", result)
+  files.write_text(args.results / "measure_sheet_crops.gin", gin.operative_config_str())
   for name, numbers in result["configurations"].items():
     print(f"{name}: {numbers['selection_pixels_per_tile_full_frame_median']:.0f} -> "
           f"{numbers['selection_pixels_per_tile_crop_median']:.0f} selection pixels per "
           f"{result['tile_size']}^2 tile (x{numbers['gain_crop_over_full_frame_median']:.1f})")
-  print(f"-> {RESULTS / 'measure_sheet_crops.json'}")
+  print(f"-> {args.results / 'measure_sheet_crops.json'}")
 
 
 if __name__ == "__main__":

@@ -23,13 +23,13 @@ Scenes:
           --stitch_edit (its config.gin: the trained NeRF and the teddy bear placed with
           `signerf place`), every NeRF training of the edit under 120 s, no orbit video.
 
-Writes RESULTS/nerf_consistency.json (per scene and arm: the measurements, the edit's headline
-quality and seconds; per other arm and measurement, whether the sheet's interval lies wholly
-above the arm's, "higher", wholly below, "lower", or neither, "overlapping"; and per other arm
-and per-view measurement, the interval of the view-by-view difference, "significant" when it
-leaves out zero) and nerf_consistency.png (the intervals, and each arm's before/after held-out
-renders). --smoke adds gin_configs/nerf_consistency_smoke.gin (tiny budgets, numbers
-meaningless).
+Writes into --results DIR (default outputs/experiments/) nerf_consistency.json (per scene and
+arm: the measurements, the edit's headline quality and seconds; per other arm and measurement,
+whether the sheet's interval lies wholly above the arm's, "higher", wholly below, "lower", or
+neither, "overlapping"; and per other arm and per-view measurement, the interval of the
+view-by-view difference, "significant" when it leaves out zero) and nerf_consistency.png (the
+intervals, and each arm's before/after held-out renders). --smoke adds
+gin_configs/nerf_consistency_smoke.gin (tiny budgets, numbers meaningless).
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ from signerf_jax.metrics import solidity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 ARMS = (Variant("sheet"), Variant("independent", ("UpdateConfig.propagation = 'independent'",)),
         Variant("reference_views", ("UpdateConfig.propagation = 'reference_views'",)))
 # Every NeRF training of a stitch edit under 120 s, as real_scene_edit.py's; no orbit video (the
@@ -169,7 +169,7 @@ def main(argv=None) -> int:
                       default=[arm.name for arm in ARMS[1:]],
                       help="the arms compared with the sheet (which always runs)")
   parser.add_argument("--out", default="outputs/nerf_consistency", help="the edits (resumed)")
-  parser.add_argument("--results", default=str(RESULTS))
+  results_dir.add_argument(parser)
   parser.add_argument("--stitch_edit", default="outputs/real_scene_edit/edit",
                       help="experiments/real_scene_edit.py's edit (its placement)")
   parser.add_argument("--smoke", action="store_true", help="tiny budgets, numbers meaningless")

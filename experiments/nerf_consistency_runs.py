@@ -2,7 +2,7 @@
 experiments/nerf_consistency.py.
 
     python experiments/nerf_consistency_runs.py --setting NAME RESULT.json [RESULT.json ...]
-        [--setting ...] [--output experiments/results/nerf_consistency_runs.json]
+        [--setting ...] [--results DIR] [--output JSON]
 
 Each RESULT.json is one run of nerf_consistency.py (e.g. one seed); the runs given after one
 --setting are repeats of the same setting. For every run, scene, baseline and per-view measure
@@ -33,8 +33,7 @@ from signerf_jax.errors import InputError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import nerf_consistency  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
-
-OUTPUT = nerf_consistency.RESULTS / "nerf_consistency_runs.json"
+import results_dir  # pylint: disable=wrong-import-position
 
 
 def run_comparisons(result: dict[str, Any], source: Path) -> dict[str, Any]:
@@ -96,7 +95,9 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--setting", nargs="+", action="append", required=True,
                       metavar="NAME RESULT.json", help="a setting's name and its runs")
-  parser.add_argument("--output", default=str(OUTPUT))
+  results_dir.add_argument(parser)
+  parser.add_argument("--output", metavar="JSON",
+                      help="the json to write (default: DIR/nerf_consistency_runs.json)")
   args = parser.parse_args(argv)
   settings = {}
   try:
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
   except InputError as error:
     print(f"nerf_consistency_runs: error: {error}", file=sys.stderr)
     return 2
-  output = Path(args.output)
+  output = Path(args.output or args.results / "nerf_consistency_runs.json")
   files.write_json(output, {"what": "experiments/nerf_consistency_runs.py over stored runs",
                             "date": datetime.date.today().isoformat(),
                             "settings": settings})

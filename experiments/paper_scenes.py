@@ -1,9 +1,9 @@
 """One scene of the paper's scene table (appendix, "Generation Information"), edited end to end.
 
     python experiments/paper_scenes.py --scene bear_grizzly --data DATA --model SDXL_PIPELINE \\
-        [--controlnet DIR] --out edits/bear_grizzly --box X0 Y0 Z0 X1 Y1 Z1 [--lpips WEIGHTS]
+        [--controlnet DIR] --edit edits/bear_grizzly --box X0 Y0 Z0 X1 Y1 Z1 [--lpips WEIGHTS]
     python experiments/paper_scenes.py --scene field_cow --data DATA --model SD15_PIPELINE \\
-        --controlnet DIR --out edits/field_cow --proxy cow.obj --on_ground X Y Z --size S
+        --controlnet DIR --edit edits/field_cow --proxy cow.obj --on_ground X Y Z --size S
 
 runs `signerf edit` (every flag of it applies) with gin_configs/paper_scenes.gin (what all scenes
 share: 30k NeRF steps, the 2 x 3 sheet, 512 px tiles) and gin_configs/paper_scenes/SCENE.gin
@@ -11,9 +11,9 @@ share: 30k NeRF steps, the 2 x 3 sheet, 512 px tiles) and gin_configs/paper_scen
 iteration, the prompt, box or proxy selection). The dataset, the model and the selection are the
 user's: parsing fails, naming the binding, until they are given. Rerunning resumes.
 
-Writes RESULTS/paper_scenes_SCENE.json (the evaluation's metrics, the generation settings of
-each iteration, the seconds of every stage), .gin (the edit's full configuration) and .png (the
-before/after renders above the reference sheet).
+Writes into --results DIR (default outputs/experiments/) paper_scenes_SCENE.json (the evaluation's
+metrics, the generation settings of each iteration, the seconds of every stage), .gin (the edit's
+full configuration) and .png (the before/after renders above the reference sheet).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from signerf_jax.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SCENE_DIR = configs.GIN_CONFIG_DIR / "paper_scenes"
 
 
@@ -51,8 +51,7 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--scene", required=True, choices=scene_names(),
                       help="the row of the paper's scene table")
-  parser.add_argument("--results", default=str(RESULTS),
-                      help="where paper_scenes_SCENE.json, .gin and .png are written")
+  results_dir.add_argument(parser)
   commands.add_edit_arguments(parser)
   args = parser.parse_args(argv)
   args.gin_file = scene_gin_files(args.scene) + args.gin_file

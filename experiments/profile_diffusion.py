@@ -34,7 +34,8 @@ included), cross-attention and feed-forward alone at that level's shapes, each w
 GFLOP and GFLOP/s; the transformers' share is their seconds times their count in the UNet over
 the forward's, and "rest" (resnets, samplers, embeddings) what the forward takes beyond them.
 All are timed round by round (one call of each per round; medians).
-Writes experiments/results/<name>.json with the machine and its load.
+Writes <name>.json with the machine and its load into --results DIR (default
+outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -64,10 +65,10 @@ from signerf_jax.diffusion.unet import UNet2DCondition
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 from bench_attention import alternate, compiled  # pylint: disable=wrong-import-position
 from bench_diffusion import SD15_UNET  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 # One HLO instruction line: its name, opcode and metadata's op_name.
 INSTRUCTION = re.compile(r'^\s*(?:ROOT\s+)?%?([^\s=]+) = [^=]*?\s([a-z][a-z\-]*)\(.*?'
                          r'op_name="([^"]*)"')
@@ -306,6 +307,7 @@ def main() -> None:
                       help="timed and profiled forwards per model and precision")
   parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
   parser.add_argument("--name", default="profile_diffusion", help="results/<name>.json")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   result: dict[str, Any] = {"machine": machine.record(), "repeats": args.repeats}
   if "operations" in args.parts:
@@ -313,8 +315,8 @@ def main() -> None:
   if "components" in args.parts:
     result["components"] = components_part(args.latent_sizes, args.repeats)
   result["machine"]["load_average_at_end"] = os.getloadavg()
-  files.write_json(RESULTS / f"{args.name}.json", result)
-  print(f"profile_diffusion: results in {RESULTS / args.name}.json")
+  files.write_json(args.results / f"{args.name}.json", result)
+  print(f"profile_diffusion: results in {args.results / args.name}.json")
 
 
 if __name__ == "__main__":

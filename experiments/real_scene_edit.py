@@ -14,10 +14,11 @@ table in front of the toy), preview (four candidate sheets, the inpainting masks
 shipped model's own 8 px at 512 (its model_index.json), as the demo grows them; timed with the
 cache as training left it, then again in a copy of the edit with the cache warm), edit (sheet 0;
 every NeRF training under `--edit_seconds`). The same edit runs again with whole downscaled frames
-instead of selection crops (`SheetConfig.crops = False`): the crops comparison. Writes
-experiments/results/real_scene_edit.json (each command's wall seconds, the edit's stage seconds,
-the evaluation's metrics, the crops comparison, the machine and its load) and real_scene_edit.png
-(the placement, the preview, before/after held-out renders with crops and with whole frames).
+instead of selection crops (`SheetConfig.crops = False`): the crops comparison. Writes into
+--results DIR (default outputs/experiments/) real_scene_edit.json (each command's wall seconds,
+the edit's stage seconds, the evaluation's metrics, the crops comparison, the machine and its
+load) and real_scene_edit.png (the placement, the preview, before/after held-out renders with
+crops and with whole frames).
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ from signerf_jax.editing.commands import sweeps
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plotting  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATA = Path(os.environ.get("SIGNERF_SHARED_DATA",
                                   Path(__file__).resolve().parents[2] / "shared" / "data"))
 DOWNSCALE = 4  # 200 x 200 px views.
@@ -76,6 +77,7 @@ def main() -> None:
   parser.add_argument("--out", default="outputs/real_scene_edit")
   parser.add_argument("--train_seconds", type=float, default=300.0)
   parser.add_argument("--edit_seconds", type=float, default=120.0)
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   load_at_start = os.getloadavg()
   out = Path(args.out)
@@ -86,20 +88,20 @@ def main() -> None:
     ownership.clear(directory, ownership.EDIT)
   shutil.rmtree(cache, ignore_errors=True)  # The experiment's own compilation cache.
   seconds = {}
-  seconds["train"], _ = signerf(cache, "train", "--data", SHARED_DATA / "stitch", "--out", run,
+  seconds["train"], _ = signerf(cache, "train", "--data", SHARED_DATA / "stitch", "--run", run,
                                 "--downscale", DOWNSCALE, "--max_seconds", args.train_seconds)
   seconds["info"], info = signerf(cache, "info", "--run", run)
   seconds["place"], placed = signerf(
-      cache, "place", "--run", run, "--out", edit, "--view", VIEW, "--pixel", *PIXEL,
+      cache, "place", "--run", run, "--edit", edit, "--view", VIEW, "--pixel", *PIXEL,
       "--proxy", SHARED_DATA / "meshes" / "teddy.obj", "--size_fraction", 0.3)
   shutil.copytree(edit, warm)
   preview = ("--prompt", PROMPT, "--quiet")
-  seconds["preview"], _ = signerf(cache, "preview", "--out", edit, *preview)
-  seconds["preview_warm_cache"], _ = signerf(cache, "preview", "--out", warm, *preview)
+  seconds["preview"], _ = signerf(cache, "preview", "--edit", edit, *preview)
+  seconds["preview_warm_cache"], _ = signerf(cache, "preview", "--edit", warm, *preview)
   shutil.copytree(edit, full_frames)
   edit_flags = ("--sheet", "0", "--max_seconds", args.edit_seconds, "--quiet")
-  seconds["edit"], _ = signerf(cache, "edit", "--out", edit, *edit_flags)
-  seconds["edit_full_frames"], _ = signerf(cache, "edit", "--out", full_frames, *edit_flags,
+  seconds["edit"], _ = signerf(cache, "edit", "--edit", edit, *edit_flags)
+  seconds["edit_full_frames"], _ = signerf(cache, "edit", "--edit", full_frames, *edit_flags,
                                            "--gin_param", "SheetConfig.crops = False")
   metrics = files.read_json(edit / "evaluation" / "metrics.json")
   result = {
@@ -121,8 +123,8 @@ def main() -> None:
                   "load_average_at_start": load_at_start,
                   "load_average_at_end": os.getloadavg()},
   }
-  RESULTS.mkdir(parents=True, exist_ok=True)
-  files.write_json(RESULTS / "real_scene_edit.json", result)
+  args.results.mkdir(parents=True, exist_ok=True)
+  files.write_json(args.results / "real_scene_edit.json", result)
   panels = [("placement (signerf place)", edit / "placement.png"),
             ("preview: candidate sheets 0-3", edit / "preview" / "preview.png"),
             ("held-out views before / after (selection crops, the default)",
@@ -130,7 +132,7 @@ def main() -> None:
             ("held-out views before / after (whole downscaled frames)",
              full_frames / "evaluation" / "before_after.png")]
   images = [figures.image_grid([[files.read_image(path)]], [[label]]) for label, path in panels]
-  files.write_image(RESULTS / "real_scene_edit.png", plotting.stacked(images))
+  files.write_image(args.results / "real_scene_edit.png", plotting.stacked(images))
   print(json.dumps({"command_seconds": seconds, "background_psnr":
                     metrics["background"]["psnr_paper"]}))
 

@@ -17,7 +17,8 @@ The driver then checks that every device count edits the same images and trains 
 losses at every step (to the tolerances below; the parameters' largest difference is reported
 too), and with `scaling.local_processes = P > 0`
 runs the multi-host entry point as P processes on 127.0.0.1 (one CPU device each), checked the
-same way. Writes experiments/results/scaling.json, scaling.gin and scaling.png.
+same way. Writes scaling.json, scaling.gin and scaling.png into --results DIR (default
+outputs/experiments/).
 
 Multi-host (one process per host; HOST:PORT is process 0's, reachable from every host):
 
@@ -25,8 +26,9 @@ Multi-host (one process per host; HOST:PORT is process 0's, reachable from every
         --process_id I [--gin_file scaling]
 
 Every process joins `jax.distributed` and measures on the devices of all processes; process 0
-writes experiments/results/scaling_multihost.json. On one machine, start the P commands in P
-shells (CPU: add XLA_FLAGS=--xla_force_host_platform_device_count=1 JAX_PLATFORMS=cpu).
+writes scaling_multihost.json into --results DIR (or --output STEM.json). On one machine, start
+the P commands in P shells (CPU: add XLA_FLAGS=--xla_force_host_platform_device_count=1
+JAX_PLATFORMS=cpu).
 """
 
 from __future__ import annotations
@@ -65,8 +67,8 @@ from signerf_jax.nerf import train, training_run
 
 import machine  # experiments/machine.py and plotting.py (this script's directory is on sys.path)
 import plotting
+import results_dir
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SCRIPT = Path(__file__).resolve()
 
 
@@ -450,8 +452,9 @@ def main(argv=None) -> int:
   parser.add_argument("--coordinator_address", help="HOST:PORT of process 0 (multi-host)")
   parser.add_argument("--num_processes", type=int, default=1)
   parser.add_argument("--process_id", type=int, default=0)
+  results_dir.add_argument(parser)
   parser.add_argument("--output", help="worker output path stem (.json, .npz); default: "
-                      "experiments/results/scaling_multihost with --coordinator_address")
+                      "DIR/scaling_multihost with --coordinator_address")
   parser.add_argument("--devices", type=int, help=argparse.SUPPRESS)  # Set for workers.
   args = parser.parse_args(argv)
   args.gin_file = args.gin_file or ["scaling"]
@@ -461,7 +464,7 @@ def main(argv=None) -> int:
   configs.parse_gin(args.gin_file, args.gin_param)
   config = ScalingConfig()
   if args.coordinator_address or args.devices:
-    output = Path(args.output or RESULTS / "scaling_multihost")
+    output = Path(args.output or args.results / "scaling_multihost")
     run_worker(config, LibrarySettings.from_gin(),
                jax.devices()[:args.devices] if args.devices else jax.devices(), output)
     if not args.devices and jax.process_index() == 0:
@@ -469,7 +472,7 @@ def main(argv=None) -> int:
       print(f"scaling: multi-host results in {output}.json")
     return 0
   result = run_driver(config, args)
-  output = RESULTS / "scaling.json"
+  output = args.results / "scaling.json"
   files.write_json(output, result)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   plot(result, output.with_suffix(".png"))

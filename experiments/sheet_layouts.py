@@ -2,7 +2,7 @@
 inpainted as sheets of several layouts and each alone.
 
     python experiments/sheet_layouts.py --edit DIR [--layouts 2x3 2x2 1x2] [--seeds 0 1 ... 7]
-        [--output experiments/results/sheet_layouts.json] [--gin_param ...]
+        [--results DIR] [--output JSON] [--gin_param ...]
 
 DIR is an edit whose reference stage has run (`DIR/reference/inputs.npz`; `DIR/config.gin` gives
 the model, the prompt and the first iteration's generation options). A layout of R x C tiles
@@ -35,8 +35,8 @@ from signerf_jax.editing import sheet as sheet_lib
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import machine  # pylint: disable=wrong-import-position
+import results_dir  # pylint: disable=wrong-import-position
 
-RESULTS = Path(__file__).resolve().parent / "results"
 CHANGE_THRESHOLD = 0.1  # The largest channel difference still counted as unchanged.
 
 
@@ -128,7 +128,9 @@ def main(argv=None) -> int:
   parser.add_argument("--edit", required=True, help="an edit whose reference stage has run")
   parser.add_argument("--layouts", nargs="+", type=parse_layout, default=[(2, 3), (2, 2), (1, 2)])
   parser.add_argument("--seeds", nargs="+", type=int, default=list(range(8)))
-  parser.add_argument("--output", default=str(RESULTS / "sheet_layouts.json"))
+  results_dir.add_argument(parser)
+  parser.add_argument("--output", metavar="JSON",
+                      help="the json to write (default: DIR/sheet_layouts.json)")
   configs.add_gin_arguments(parser)
   args = parser.parse_args(argv)
   edit = Path(args.edit)
@@ -159,7 +161,7 @@ def main(argv=None) -> int:
   for way, measures in ways.items():
     print(f"{way}: " + ", ".join(f"{name} {value:.3f}" for name, value in measures.items()
                                  if isinstance(value, float)), flush=True)
-  output = Path(args.output)
+  output = Path(args.output or args.results / "sheet_layouts.json")
   files.write_json(output, {
       "what": "an edit's reference views inpainted as sheets of several layouts and alone "
               "(experiments/sheet_layouts.py's docstring says what each measure is)",

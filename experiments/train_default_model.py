@@ -11,10 +11,11 @@ encoder, then ControlNet; finished stages are skipped) and starts no new step af
     layout to --weights (default: the package's shipped `signerf_jax/default_model/weights`);
   * verifies the export by loading it back through the component loaders and checking that
     every parameter equals the trained one rounded to the stored dtype;
-  * writes experiments/results/default_model_training.json (+ .gin): per stage the steps done,
-    wall time, final losses (mean of the last 50 steps), parameter counts, sizes on disk, and
-    the loss curves (means over windows of CURVE_WINDOW steps), and
-    experiments/results/default_model_training.png (the curves).
+  * writes default_model_training.json (+ .gin) into --results DIR (default outputs/experiments/),
+    or --output JSON: per stage the steps done, wall time, final losses (mean of the last 50
+    steps), parameter counts, sizes on disk, and the loss curves (means over windows of
+    CURVE_WINDOW steps), and
+    default_model_training.png beside it (the curves).
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ from signerf_jax import configs, files
 from signerf_jax.default_model import export, model, stages, training, training_data
 
 import plotting  # experiments/plotting.py (this script's directory is on sys.path)
+import results_dir
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SHIPPED_WEIGHTS = Path(model.__file__).resolve().parent / "weights"
 CURVE_WINDOW = 10
 FINAL_WINDOW = 50
@@ -99,7 +100,9 @@ def main(argv=None) -> int:
   parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="export directory")
   parser.add_argument("--no_export", action="store_true")
   configs.add_gin_arguments(parser)
-  parser.add_argument("--output", default=str(RESULTS / "default_model_training.json"))
+  results_dir.add_argument(parser)
+  parser.add_argument("--output", metavar="JSON",
+                      help="the json to write (default: DIR/default_model_training.json)")
   args = parser.parse_args(argv)
   start = time.monotonic()
   configs.parse_gin(args.gin_file or ["default_model"], args.gin_param)
@@ -139,7 +142,7 @@ def main(argv=None) -> int:
                        for name, params in trained.params.items()},
         "max_abs_difference_after_loading": verify_export(Path(args.weights), trained.params,
                                                           dtype)}
-  output = Path(args.output)
+  output = Path(args.output or args.results / "default_model_training.json")
   files.write_json(output, result)
   files.write_text(output.with_suffix(".gin"), gin.config_str())
   plot_curves(trained.histories, output.with_suffix(".png"))

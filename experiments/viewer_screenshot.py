@@ -4,7 +4,7 @@ headless Chromium, photographed once the finest frame has arrived.
   python experiments/viewer_screenshot.py --run RUN --edit EDIT [--view 0] [--name viewer]
 
 Needs the test extras (selenium) and Debian's chromium and chromium-driver packages. Writes
-experiments/results/NAME.png.
+NAME.png into --results DIR (default outputs/experiments/).
 """
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from __future__ import annotations
 import argparse
 import shutil
 import time
-from pathlib import Path
 
 from signerf_jax import files
 from signerf_jax.viewer import app
 
-RESULTS = Path(__file__).resolve().parent / "results"
+import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
+
 WINDOW = (1280, 760)
 
 
@@ -27,6 +27,7 @@ def main() -> None:
   parser.add_argument("--edit", required=True)
   parser.add_argument("--view", type=int, default=0, help="the dataset view to look through")
   parser.add_argument("--name", default="viewer")
+  results_dir.add_argument(parser)
   args = parser.parse_args()
   from selenium import webdriver  # pylint: disable=g-import-not-at-top  (a test extra)
   from selenium.webdriver.chrome.service import Service  # pylint: disable=g-import-not-at-top
@@ -50,8 +51,8 @@ def main() -> None:
         frame.height < max(viewer.heights)):
       time.sleep(0.2)
     time.sleep(2.0)  # The browser draws the last frame.
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{args.name}.png"
+    args.results.mkdir(parents=True, exist_ok=True)
+    path = args.results / f"{args.name}.png"
     files.write_bytes(path, browser.get_screenshot_as_png())
     print(f"{path}: view {args.view}, finest frame after {frame.seconds:.1f} s")
   finally:

@@ -4,9 +4,8 @@ XLA:CPU allocates each call's outputs and temporary buffers with `malloc` and fr
 call returns. glibc gives large blocks (above its mmap threshold, at most 32 MiB, and anything
 over 64 MiB that a worker thread's arena cannot hold) back to the kernel on `free`, so the next
 call's buffers arrive as fresh pages that the kernel maps and zeroes one 4-KiB page fault at a
-time. A NeRF training step frees and re-faults hundreds of MiB every step: on this project's
-2-core VMs that kernel time was about a third of NeRF training (README, "Performance";
-`experiments/bench_allocator.py` measures it).
+time. A NeRF training step frees and re-faults hundreds of MiB every step, and on a CPU with
+few cores that kernel time is a large share of NeRF training (docs/performance.md).
 
 `keep_freed_memory()` sets glibc's `mallopt` so that every thread allocates from the one main
 heap, large blocks come from that heap instead of `mmap`, and the heap is trimmed only past
@@ -14,7 +13,7 @@ heap, large blocks come from that heap instead of `mmap`, and the heap is trimme
 same bytes. The costs: the process keeps the memory it has used (its peak, plus what
 fragmentation adds) until it exits, and the diffusion sampler runs slower: its threads contend
 for the one heap, and its large blocks served from the heap are slower too (each half of the
-setting alone slows it; README, "Performance"). So the commands that train or render a NeRF
+setting alone slows it; docs/performance.md). So the commands that train or render a NeRF
 call it first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`; the viewer too, whose frames
 are NeRF renders), those that only sample do not, and library code never does.
 SIGNERF_KEEP_FREED_MEMORY=0 in the environment leaves the allocator as it was. Elsewhere than

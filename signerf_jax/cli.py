@@ -2,11 +2,17 @@
 
 Each subcommand lives in the module that owns its stage and exposes `add_arguments(parser)` and
 `run(args) -> int`. Only the chosen subcommand's module is imported, so `signerf --help` is fast.
+
+One flag name per thing, in every command: --data the input dataset, --run a NeRF run directory
+(`signerf train` writes it, the others read it), --edit an edit directory, --out only the folder
+a command fills with outputs that are neither (synthesize's dataset, render's renders, the
+demo's folder). Old spellings stay for a release as deprecated aliases (`deprecated_aliases`).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import os
 import signal
@@ -47,24 +53,122 @@ COMMANDS: dict[str, tuple[str, str]] = {
              "insert a cow into a generated scene with the shipped model, end to end"),
 }
 
+# name -> what the command writes, where (its --help description, after the one-line help).
+WRITES: dict[str, str] = {
+    "synthesize": "Writes OUT: a nerfstudio dataset (transforms.json, images/, depths/ as EXR "
+                  "z-depth, object_masks/), scene.json (the scene and how it was made) and "
+                  "config.gin.",
+    "train": "Writes RUN: config.gin (the gin bindings, which a resume reads back), model.json, "
+             "checkpoint.msgpack, and after training eval.json and eval/ (held-out renders and "
+             "depth maps). A rerun resumes.",
+    "render": "Writes OUT (default RUN/renders): SPLIT/<view>.png, .depth.exr, .depth.png and "
+              ".accumulation.png, and with --video video.mp4.",
+    "eval": "Writes RUN/eval.json and RUN/eval/ (the held-out renders), or with --edit "
+            "EDIT/evaluation/ (metrics.json, before/after figures, video) after running any "
+            "unfinished stage.",
+    "edit": "Writes EDIT: config.gin (the edit's settings, read first by every later command), "
+            "stages.json and one folder per stage: original/ (unless --run), selection/, "
+            "reference/, preview/, sheet/, views/, update/, dataset/ (the edited dataset), "
+            "edited/ (the edited NeRF), evaluation/ (iteration_2/ with --second_iteration). "
+            "Finished stages are skipped on a rerun.",
+    "info": "Writes nothing: prints the scene in the dataset's own units on stderr and as one "
+            "JSON line on stdout.",
+    "place": "Writes EDIT/config.gin (the selection as gin bindings, on top of the edit's saved "
+             "settings) and EDIT/placement.png (the view with the selection's silhouette); prints "
+             "the selection as one JSON line.",
+    "preview": "Writes EDIT/preview/: candidates/ (one sheet per seed or re-roll) and preview.png "
+               "(them side by side), after the stages before it (original/ unless --run, "
+               "selection/, reference/) and EDIT/config.gin.",
+    "update": "Writes EDIT/update/ (the edited views) and EDIT/dataset/ (the edited dataset), "
+              "after the stages before them (as `signerf edit`) and EDIT/config.gin.",
+    "finetune": "Writes EDIT/edited/ (the edited NeRF, a run directory), after the stages before "
+                "it (as `signerf edit`) and EDIT/config.gin.",
+    "view": "Writes EDIT/config.gin when the selection and settings are saved, and "
+            "EDIT/preview/ (as `signerf preview`) when sheets are previewed; nothing else.",
+    "demo": "Writes OUT: scene/ (the synthetic scene, as `signerf synthesize`) and edit/ (the "
+            "edit, as `signerf edit`; edit/evaluation/ holds the before/after figure, the sheet, "
+            "the video and metrics.json). A rerun resumes.",
+}
+
+# The dataset formats `data.load_dataset` reads (`data.load.FORMATS`), for every --data help.
+DATA_FORMATS = "nerfstudio, Blender, LLFF, COLMAP or NeuS/IDR"
+DATA_HELP = f"dataset directory ({DATA_FORMATS}; the format is detected)"
+
 # Commands whose process keeps the memory XLA frees (signerf_jax.allocator): a NeRF step or a
 # rendered chunk frees and re-faults its buffers on every call (`eval` renders the views it
-# measures: 1.49x on stitch). `edit` and `demo` too: their time-budgeted NeRF stages run
-# ~1.3-1.45x the steps, which outweighs their sampling stages running slower that way; and
-# `view`, whose frames of a real capture come 1.57x sooner while its occasional preview samples
-# slower. `preview` and `update` only sample and keep glibc's defaults (README, "Performance").
+# measures). `edit` and `demo` too: their time-budgeted NeRF stages run more steps, which
+# outweighs their sampling stages running slower that way; and `view`, whose frames come sooner
+# while its occasional preview samples slower. `preview` and `update` only sample and keep
+# glibc's defaults (docs/performance.md).
 KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "demo", "view")
 
 # Commands a rerun resumes (checkpoints and finished stages are kept): an interrupted one says so.
 RESUMABLE_COMMANDS = ("train", "edit", "update", "finetune", "demo")
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+  """Every option's help ends with its default, unless the help says it already ("default")
+  or there is none to show: None or "" (the flag sets nothing unless given; its help says what
+  happens then), False (a switch) or [] (a repeatable flag, none given)."""
+
+  def _get_help_string(self, action: argparse.Action) -> str | None:
+    default = action.default
+    if (default is None or default is False or (isinstance(default, (list, str)) and not default)
+        or "default" in (action.help or "")):
+      return action.help
+    return super()._get_help_string(action)
+
+
+def deprecated_aliases(parser: argparse.ArgumentParser, action: argparse.Action,
+                       *old_flags: str) -> argparse.Action:
+  """Lets each of `old_flags`, an old spelling of `action`'s flag, stand for it for one more
+  release: it parses as the flag does, and prints one warning line naming the flag ("signerf
+  train: --out is deprecated, use --run"). --help shows the new flag only. Returns `action`.
+
+  `parser` is the parser or argument group `action` was added to."""
+  for old_flag in old_flags:
+    if old_flag in parser._option_string_actions:  # pylint: disable=protected-access
+      raise ValueError(f"{old_flag} is already a flag here")
+    parser._option_string_actions[old_flag] = action  # pylint: disable=protected-access
+  action.deprecated_aliases = (*getattr(action, "deprecated_aliases", ()), *old_flags)
+  action.__class__ = _warning_on_aliases(type(action))
+  return action
+
+
+@functools.cache
+def _warning_on_aliases(action_class: type[argparse.Action]) -> type[argparse.Action]:
+  """`action_class`, warning when an action is given by one of its `deprecated_aliases`."""
+
+  class Renamed(action_class):
+    def __call__(self, parser, namespace, values, option_string=None):
+      if option_string in self.deprecated_aliases:
+        print(f"{parser.prog}: {option_string} is deprecated, use {self.option_strings[0]}",
+              file=sys.stderr)
+      super().__call__(parser, namespace, values, option_string)
+
+  Renamed.__name__ = Renamed.__qualname__ = f"Renamed{action_class.__name__}"
+  return Renamed
+
+
+def add_output_argument(parser: argparse.ArgumentParser, flag: str, *,
+                        deprecated: Sequence[str] = (), **kwargs) -> argparse.Action:
+  """Adds `flag` (keyword arguments as `add_argument`'s), the directory the command writes:
+  `main` checks it can be written before the command starts, naming the flag. `deprecated`:
+  old spellings (`deprecated_aliases`)."""
+  parser.set_defaults(output_flag=flag.lstrip("-"))
+  return deprecated_aliases(parser, parser.add_argument(flag, **kwargs), *deprecated)
+
+
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
   """The `signerf` parser; only the subcommand named first in `argv` adds its options."""
-  parser = argparse.ArgumentParser(prog="signerf", description=__doc__.splitlines()[0])
+  # No abbreviations: each flag has one spelling (preview's --seeds is not `edit --seed`).
+  parser = argparse.ArgumentParser(prog="signerf", description=__doc__.splitlines()[0],
+                                   formatter_class=HelpFormatter, allow_abbrev=False)
   subparsers = parser.add_subparsers(dest="command", required=True)
   for name, (module_name, help_text) in COMMANDS.items():
-    subparser = subparsers.add_parser(name, help=help_text, description=help_text)
+    description = f"{help_text[0].upper()}{help_text[1:]}. {WRITES.get(name, '')}".strip()
+    subparser = subparsers.add_parser(name, help=help_text, description=description,
+                                      formatter_class=HelpFormatter, allow_abbrev=False)
     subparser.set_defaults(module_name=module_name)
     if argv and argv[0] == name:
       importlib.import_module(module_name).add_arguments(subparser)
@@ -74,7 +178,7 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
 def use_compilation_cache() -> None:
   """Keeps compiled programs between commands in JAX's persistent cache, so a preview after
   `signerf train`, or the next preview, does not compile the sampler and the renderer again
-  (README, "Editing a scene", has the times). JAX's own settings win: JAX_COMPILATION_CACHE_DIR
+  (docs/performance.md). JAX's own settings win: JAX_COMPILATION_CACHE_DIR
   chooses another directory, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS another threshold,
   JAX_ENABLE_COMPILATION_CACHE=false turns the cache off."""
   import jax  # pylint: disable=g-import-not-at-top  (`signerf --help` stays fast without it)
@@ -82,7 +186,8 @@ def use_compilation_cache() -> None:
     cache_home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     jax.config.update("jax_compilation_cache_dir", str(cache_home / "signerf_jax" / "xla"))
   if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
-    # A preview compiles ~90 programs, most under JAX's default 1 s threshold and ~5 s together.
+    # A preview compiles many small programs, most under JAX's default 1 s threshold, which
+    # together take seconds.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
@@ -111,8 +216,9 @@ def main(argv: Sequence[str] | None = None) -> int:
   previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if catch_sigterm else None
   try:
     module = importlib.import_module(args.module_name)
-    if getattr(args, "out", None):  # Every command names the directory it writes `--out`.
-      ownership.check_output_path(args.out)
+    output_flag = getattr(args, "output_flag", None)  # `add_output_argument`'s.
+    if output_flag and getattr(args, output_flag, None):
+      ownership.check_output_path(getattr(args, output_flag), output_flag)
     use_compilation_cache()
     return int(module.run(args) or 0)
   except InputError as error:

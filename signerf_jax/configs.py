@@ -14,6 +14,7 @@ import argparse
 import contextlib
 import dataclasses
 import functools
+import importlib.resources
 import os
 from pathlib import Path
 from typing import Any, Iterator, Sequence, TypeVar
@@ -24,8 +25,18 @@ from gin import config_parser
 from signerf_jax import files
 from signerf_jax.errors import InputError
 
-# gin_configs/ sits next to the package in the repository (the design card fixes the layout).
-GIN_CONFIG_DIR = Path(__file__).resolve().parent.parent / "gin_configs"
+
+def _gin_config_dir() -> Path:
+  """The package data signerf_jax.gin_configs: pyproject.toml maps it onto the top-level
+  gin_configs/ (the design card's layout). A wheel holds it in the package; an editable install or
+  a checkout does not (setuptools' editable finder cannot import a folder without __init__.py):
+  there the package's folder sits in the checkout, beside gin_configs/."""
+  package = Path(str(importlib.resources.files("signerf_jax")))
+  shipped = package / "gin_configs"
+  return shipped if shipped.is_dir() else package.resolve().parent / "gin_configs"
+
+
+GIN_CONFIG_DIR = _gin_config_dir()
 SAVED_CONFIG_NAME = "config.gin"
 Config = TypeVar("Config")
 # How deep a gin value's brackets may nest. gin's parser, its evaluation and the checks recurse

@@ -37,8 +37,10 @@ OWNER_FILE = "owner.json"
 LOG_FILE = "written.log"
 LOCK_FILE = "lock"
 FORMAT_VERSION = 1
-# The kinds of directory a command writes (owner.json's "kind").
+# The kinds of directory a command writes (owner.json's "kind"), and the flags the commands name
+# them by (`signerf_jax.cli`; refusals name them): the other kinds are --out.
 RUN, EDIT, DATASET, RENDERS, DEMO = "run", "edit", "dataset", "renders", "demo"
+FLAGS = {RUN: "run", EDIT: "edit"}
 # Names shown in a refusal (at most this many of a directory's files).
 LISTED_FILES = 3
 
@@ -94,11 +96,7 @@ def _listing(directory: Path) -> str:
 
 def check_output_path(path: str | os.PathLike, flag: str = "out") -> None:
   """Refuses an output directory that names a file, or lies under one or under a directory this
-  process cannot write (nothing is created here).
-
-  Raises:
-    InputError naming the path and the flag.
-  """
+  process cannot write (nothing is created here): an InputError naming the path and the flag."""
   path = Path(path)
   if path.exists() and not path.is_dir():
     raise InputError("names a file, not a directory", path, flag)
@@ -113,20 +111,20 @@ def check_output_path(path: str | os.PathLike, flag: str = "out") -> None:
 
 def check_claimable(path: str | os.PathLike, kind: str, *,
                     inputs: Iterable[tuple[str, str | os.PathLike | None]] = (),
-                    flag: str = "out") -> None:
+                    flag: str | None = None) -> None:
   """Raises, without touching the disk, what `claimed(path, kind, ...)` would refuse.
 
   Args:
     path: the output directory.
     kind: what the command writes there (RUN, EDIT, DATASET, RENDERS or DEMO).
     inputs: (flag, path) of what the command reads; None paths are skipped.
-    flag: the output's flag, named in errors.
+    flag: the output's flag, named in errors (default: the kind's, `FLAGS`, else "out").
   Raises:
     InputError naming the path and the flag: a file, not writable, another kind of signerf
       directory, a directory of files signerf did not write, or one overlapping an input;
       directory_lock.DirectoryInUse: another process holds its lock.
   """
-  path = Path(path)
+  path, flag = Path(path), flag or FLAGS.get(kind, "out")
   check_output_path(path, flag)
   resolved = path.resolve()
   for input_flag, input_path in inputs:
@@ -157,7 +155,7 @@ def check_claimable(path: str | os.PathLike, kind: str, *,
 @contextlib.contextmanager
 def claimed(path: str | os.PathLike, kind: str, *,
             inputs: Iterable[tuple[str, str | os.PathLike | None]] = (),
-            flag: str = "out") -> Iterator[Path]:
+            flag: str | None = None) -> Iterator[Path]:
   """Claims `path` for this process while the block runs (see the module docstring): checks it
   (`check_claimable`), creates and marks it if new, locks it, removes its recorded temporary
   files. Claims nest: within a claim, a claim of it or of a directory inside it only counts.
@@ -174,8 +172,9 @@ def claimed(path: str | os.PathLike, kind: str, *,
     _release(claim)
 
 
-def _claim(path: Path, kind: str, inputs, flag: str) -> _Claim:
+def _claim(path: Path, kind: str, inputs, flag: str | None) -> _Claim:
   check_claimable(path, kind, inputs=inputs, flag=flag)
+  flag = flag or FLAGS.get(kind, "out")
   resolved = path.resolve()
   with _mutex:
     active = _active_claim(resolved)

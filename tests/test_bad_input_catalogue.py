@@ -32,7 +32,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
                    "--gin_param", "synthetic_cameras.num_views = 5",
                    "--gin_param", "synthetic_cameras.image_size = 16",
                    "--gin_param", "synthetic_scene.num_meshes = 0"]) == 0
-  assert cli.main(["train", "--data", str(root / "scene"), "--out", str(root / "run"),
+  assert cli.main(["train", "--data", str(root / "scene"), "--run", str(root / "run"),
                    "--steps", "2", "--skip_eval"]) == 0
   return {"scene": root / "scene", "run": root / "run"}
 
@@ -61,7 +61,7 @@ def png_header(width: int, height: int) -> bytes:
 
 
 def edit_argv(tmp_path: Path, inputs, *extra: str) -> list[str]:
-  return ["edit", "--out", str(tmp_path / "edit"), "--run", str(inputs["run"]), "--prompt",
+  return ["edit", "--edit", str(tmp_path / "edit"), "--run", str(inputs["run"]), "--prompt",
           "a red cow", "--box", "-0.2", "-0.2", "-0.2", "0.2", "0.2", "0.2", *extra]
 
 
@@ -70,7 +70,7 @@ def edit_argv(tmp_path: Path, inputs, *extra: str) -> list[str]:
 def gin_file_with_import(tmp_path, inputs):
   evil = tmp_path / "evil.gin"
   evil.write_text("TrainConfig.steps = 3\nimport os\n")
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--gin_file",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--gin_file",
            str(evil)], [str(evil), "line 2", "would run code"], tmp_path / "r")
 
 
@@ -78,7 +78,7 @@ def saved_run_config_with_import(tmp_path, inputs):
   run = copy(inputs["run"], tmp_path / "run")
   with open(run / "config.gin", "a") as handle:
     handle.write("from os import system\n")
-  return (["train", "--data", str(inputs["scene"]), "--out", str(run), "--steps", "3"],
+  return (["train", "--data", str(inputs["scene"]), "--run", str(run), "--steps", "3"],
           [str(run / "config.gin"), "would run code"], None)
 
 
@@ -92,7 +92,7 @@ def truncated_image(tmp_path, inputs):
   scene = copy(inputs["scene"], tmp_path / "scene")
   image = scene / "images" / "frame_00002.png"
   image.write_bytes(image.read_bytes()[:200])
-  return (["train", "--data", str(scene), "--out", str(tmp_path / "r"), "--steps", "1"],
+  return (["train", "--data", str(scene), "--run", str(tmp_path / "r"), "--steps", "1"],
           [str(image), "truncated"], tmp_path / "r")
 
 
@@ -112,13 +112,13 @@ def truncated_checkpoint(tmp_path, inputs):
 
 
 def negative_learning_rate(tmp_path, inputs):
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--gin_param",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--gin_param",
            "TrainConfig.learning_rate = -0.01"],
           ["TrainConfig.learning_rate", "must be a finite number > 0, got -0.01"], tmp_path / "r")
 
 
 def negative_steps(tmp_path, inputs):
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--steps",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--steps",
            "-5"], ["argument --steps", "must be an integer >= 1, got -5"], tmp_path / "r")
 
 
@@ -128,18 +128,18 @@ def negative_max_seconds_in_a_scope(tmp_path, inputs):
 
 
 def text_for_an_integer(tmp_path, inputs):
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--gin_param",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--gin_param",
            "TrainConfig.steps = 'abc'"], ["TrainConfig.steps", "got 'abc'"], tmp_path / "r")
 
 
 def list_for_a_learning_rate(tmp_path, inputs):
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--gin_param",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--gin_param",
            "TrainConfig.learning_rate = [0.01, 0.001]"],
           ["TrainConfig.learning_rate", "got [0.01, 0.001]"], tmp_path / "r")
 
 
 def zero_rays_per_batch(tmp_path, inputs):
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--gin_param",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--gin_param",
            "CapacityRules.rays_per_batch = 0"],
           ["CapacityRules.rays_per_batch", "an integer >= 1 or None, got 0"], tmp_path / "r")
 
@@ -149,7 +149,7 @@ def one_image_dataset(tmp_path, inputs):
   meta = json.loads((scene / "transforms.json").read_text())
   meta["frames"] = meta["frames"][:1]
   (scene / "transforms.json").write_text(json.dumps(meta))
-  return (["train", "--data", str(scene), "--out", str(tmp_path / "r")],
+  return (["train", "--data", str(scene), "--run", str(tmp_path / "r")],
           [str(scene), "the train split is empty"], tmp_path / "r")
 
 
@@ -162,14 +162,14 @@ def model_config_that_is_a_list(tmp_path, inputs):
 
 
 def downscale_beyond_the_image(tmp_path, inputs):
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), "--downscale",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--downscale",
            "64"], ["downscale", "64 leaves no pixel of the 16x16 images"], tmp_path / "r")
 
 
-def out_names_a_file(tmp_path, inputs):
+def run_names_a_file(tmp_path, inputs):
   (tmp_path / "taken").write_text("")
-  return (["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "taken")],
-          [str(tmp_path / "taken"), "out", "names a file"], None)
+  return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "taken")],
+          [str(tmp_path / "taken"), ": run: names a file"], None)
 
 
 def out_under_a_file(tmp_path, inputs):
@@ -203,7 +203,7 @@ def llff_hwf_that_disagrees_with_the_images(tmp_path, inputs):
     hwf = [[120.0], [160.0], [100.0]]  # 120 x 160 claimed; the images are 12 x 16.
     rows.append(np.concatenate([np.concatenate([pose, hwf], axis=1).ravel(), [1.0, 10.0]]))
   np.save(scene / "poses_bounds.npy", np.asarray(rows))
-  return (["train", "--data", str(scene), "--out", str(tmp_path / "r")],
+  return (["train", "--data", str(scene), "--run", str(tmp_path / "r")],
           [str(scene / "images"), "is 16x12 pixels, not the 160x120 of poses_bounds.npy's hwf"],
           tmp_path / "r")
 
@@ -212,25 +212,25 @@ def decompression_bomb(tmp_path, inputs):
   scene = copy(inputs["scene"], tmp_path / "scene")
   bomb = scene / "images" / "frame_00001.png"
   bomb.write_bytes(png_header(100_000, 100_000))
-  return (["train", "--data", str(scene), "--out", str(tmp_path / "r")],
+  return (["train", "--data", str(scene), "--run", str(tmp_path / "r")],
           [str(bomb), "100000x100000 pixels is more than"], tmp_path / "r")
 
 
 def place_pixel_outside_the_view(tmp_path, inputs):
-  return (["place", "--run", str(inputs["run"]), "--out", str(tmp_path / "edit"), "--view", "0",
+  return (["place", "--run", str(inputs["run"]), "--edit", str(tmp_path / "edit"), "--view", "0",
            "--pixel", "500", "5", "--proxy", "primitive:cow"],
           ["pixel", "(500, 5) is outside the 16x16 view"], tmp_path / "edit")
 
 
 def place_without_a_target(tmp_path, inputs):
-  return (["place", "--run", str(inputs["run"]), "--out", str(tmp_path / "edit"), "--view", "0"],
+  return (["place", "--run", str(inputs["run"]), "--edit", str(tmp_path / "edit"), "--view", "0"],
           ["give --view, --pixel and --proxy"], tmp_path / "edit")
 
 
-def out_is_the_dataset(tmp_path, inputs):
+def run_is_the_dataset(tmp_path, inputs):
   scene = copy(inputs["scene"], tmp_path / "scene")
-  return (["train", "--data", str(scene), "--out", str(scene), "--steps", "1"],
-          ["out", "is the input given as --data", "never writes into what it reads"],
+  return (["train", "--data", str(scene), "--run", str(scene), "--steps", "1"],
+          [": run: is the input given as --data", "never writes into what it reads"],
           scene / "model.json")
 
 
@@ -244,22 +244,23 @@ def synthesize_over_a_capture(tmp_path, inputs):
 
 def preview_into_a_run(tmp_path, inputs):
   run = copy(inputs["run"], tmp_path / "run")
-  return (["preview", "--out", str(run), "--data", str(inputs["scene"]), "--prompt", "a red cow",
+  return (["preview", "--edit", str(run), "--data", str(inputs["scene"]), "--prompt", "a red cow",
            "--box", "-0.2", "-0.2", "-0.2", "0.2", "0.2", "0.2"],
-          [str(run), "is a signerf run directory, not an edit directory"], run / "stages.json")
+          [f"{run}: edit: is a signerf run directory, not an edit directory"],
+          run / "stages.json")
 
 
 def resume_on_other_data(tmp_path, inputs):
   run = copy(inputs["run"], tmp_path / "run")
   other = copy(inputs["scene"], tmp_path / "other")
-  return (["train", "--data", str(other), "--out", str(run), "--steps", "3"],
+  return (["train", "--data", str(other), "--run", str(run), "--steps", "3"],
           [str(run / "model.json"), "fingerprint", "trained on other data", "--start_over"],
           None)
 
 
 def resume_at_another_size(tmp_path, inputs):
   run = copy(inputs["run"], tmp_path / "run")
-  return (["train", "--data", str(inputs["scene"]), "--out", str(run), "--downscale", "2",
+  return (["train", "--data", str(inputs["scene"]), "--run", str(run), "--downscale", "2",
            "--steps", "3"], ["images of 16x16 px then, 8x8 now", "downscale 1 then, 2 now"],
           None)
 
@@ -274,9 +275,9 @@ COMMAND_CASES = [
     truncated_image, flipped_checkpoint_byte, truncated_checkpoint, negative_learning_rate,
     negative_steps, negative_max_seconds_in_a_scope, text_for_an_integer,
     list_for_a_learning_rate, zero_rays_per_batch, one_image_dataset, model_config_that_is_a_list,
-    downscale_beyond_the_image, out_names_a_file, out_under_a_file, box_with_nan,
+    downscale_beyond_the_image, run_names_a_file, out_under_a_file, box_with_nan,
     garbage_proxy_mesh, llff_hwf_that_disagrees_with_the_images, decompression_bomb,
-    place_pixel_outside_the_view, place_without_a_target, out_is_the_dataset,
+    place_pixel_outside_the_view, place_without_a_target, run_is_the_dataset,
     synthesize_over_a_capture, preview_into_a_run, resume_on_other_data, resume_at_another_size,
     eval_chunk_size_beyond_memory,
 ]
@@ -351,7 +352,7 @@ def test_a_full_disk_while_checkpointing_names_the_file_and_keeps_the_last_check
     return write_bytes(path, data)
 
   monkeypatch.setattr(Path, "write_bytes", full_disk_for_checkpoints)
-  assert_one_clear_error(["train", "--data", str(inputs["scene"]), "--out", str(run), "--steps",
+  assert_one_clear_error(["train", "--data", str(inputs["scene"]), "--run", str(run), "--steps",
                           "4", "--skip_eval"],
                          [str(run / "checkpoint.msgpack"), "No space left on device",
                           "is kept"], None, capsys)

@@ -50,7 +50,7 @@ def colmap_scene(root: Path, binary: bool, names: list[str] | None = None) -> Pa
 
 
 def train_argv(tmp_path: Path, scene: Path) -> list[str]:
-  return ["train", "--data", str(scene), "--out", str(tmp_path / "r"), "--steps", "1"]
+  return ["train", "--data", str(scene), "--run", str(tmp_path / "r"), "--steps", "1"]
 
 
 # Each case: (tmp_path, inputs) -> (argv, fragments the error line must hold, a path the

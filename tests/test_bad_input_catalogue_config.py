@@ -17,7 +17,7 @@ SCOPED_NAMES = ["original/TrainConfig", "finetune/TrainConfig", "retrain/TrainCo
 
 
 def train_argv(tmp_path, inputs, *extra: str) -> list[str]:
-  return ["train", "--data", str(inputs["scene"]), "--out", str(tmp_path / "r"), *extra]
+  return ["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), *extra]
 
 
 def with_prompt(argv: list[str], prompt: str) -> list[str]:

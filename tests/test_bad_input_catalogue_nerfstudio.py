@@ -32,7 +32,7 @@ def edited_scene(tmp_path: Path, inputs, change) -> tuple[Path, Path]:
 
 
 def train_argv(tmp_path: Path, scene: Path, *extra: str) -> list[str]:
-  return ["train", "--data", str(scene), "--out", str(tmp_path / "r"), "--steps", "1", *extra]
+  return ["train", "--data", str(scene), "--run", str(tmp_path / "r"), "--steps", "1", *extra]
 
 
 def relative_path_out_of_the_folder(tmp_path, inputs):

@@ -220,6 +220,7 @@ def test_image_rays_centre_looks_forward_and_pixel_grid_is_row_major():
   assert float(centre.cos_to_optical_axis) == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("per_side", [1, 2, 3])
 def test_subpixel_rays_cross_a_grid_inside_each_pixel_pixel_by_pixel(per_side):
   """Pixel i's per_side^2 rays come at i * per_side^2 onwards, row by row through the centres
@@ -305,6 +306,7 @@ def test_axis_angle_rotations_are_proper_and_match_scipy(axis_angle):
   assert np.all(np.isfinite(gradient))
 
 
+@pytest.mark.slow
 def test_refined_rays_turn_about_and_move_their_own_camera():
   cameras = camera.Cameras.create(np.stack([np.eye(4)[:3], np.eye(4)[:3]]), fx=10.0, width=8,
                                   height=6)

@@ -55,10 +55,10 @@ def test_the_commands_that_train_a_nerf_keep_freed_memory(monkeypatch, tmp_path)
   monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append(True))
   assert set(cli.KEEP_FREED_MEMORY_COMMANDS) <= set(cli.COMMANDS)
   # A missing dataset or run stops each command with an input error, after the allocator step.
-  assert cli.main(["train", "--data", str(tmp_path / "missing"), "--out",
+  assert cli.main(["train", "--data", str(tmp_path / "missing"), "--run",
                    str(tmp_path / "run")]) == 2
   assert calls == [True]
-  assert cli.main(["preview", "--run", str(tmp_path / "missing"), "--out",
+  assert cli.main(["preview", "--run", str(tmp_path / "missing"), "--edit",
                    str(tmp_path / "edit")]) == 2
   assert calls == [True]  # The diffusion sampler runs slower keeping freed memory.
 

@@ -17,6 +17,8 @@ import pytest
 
 from signerf_jax import checkpoints
 
+pytestmark = pytest.mark.slow
+
 SIGNERF = [sys.executable, "-m", "signerf_jax.cli"]
 # The first step compiles (tens of seconds on two busy cores); the others take well under one.
 PROGRESS_TIMEOUT = 300.0
@@ -46,7 +48,7 @@ class Training:
     # Far more steps than run: only a signal ends it. No checkpoint falls due (every 1000
     # steps, and not by time): whatever a run finds when resumed, the interrupt wrote.
     self.process = subprocess.Popen(
-        SIGNERF + ["train", "--data", str(scene), "--out", str(run_dir), "--steps", "100000",
+        SIGNERF + ["train", "--data", str(scene), "--run", str(run_dir), "--steps", "100000",
                    "--skip_eval", "--gin_param", "TrainConfig.checkpoint_every_seconds = 1e6"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     self.stderr = ""

@@ -240,3 +240,16 @@ def test_the_record_is_compacted_when_claimed(tmp_path):
   with ownership.claimed(run, ownership.RUN):
     pass
   assert len((run / ownership.MARKER_FOLDER / ownership.LOG_FILE).read_text().splitlines()) == 1
+
+
+@pytest.mark.parametrize("kind, flag", [(ownership.RUN, "run"), (ownership.EDIT, "edit"),
+                                        (ownership.DATASET, "out"), (ownership.RENDERS, "out"),
+                                        (ownership.DEMO, "out")])
+def test_a_refusal_names_the_flag_the_commands_give_the_kind_by(tmp_path, kind, flag):
+  write_user_files(tmp_path / "mine")
+  with pytest.raises(InputError, match="holds files signerf did not write") as error:
+    ownership.check_claimable(tmp_path / "mine", kind)
+  assert error.value.field == flag
+  with pytest.raises(InputError) as error:
+    ownership.check_claimable(tmp_path / "mine", kind, flag="given")
+  assert error.value.field == "given"

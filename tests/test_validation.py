@@ -94,17 +94,17 @@ def test_a_bad_gin_binding_is_named_as_written(clear_gin, binding, cls, scope, f
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["train", "--data", "d", "--out", "o", "--steps", "0"],
+    (["train", "--data", "d", "--run", "o", "--steps", "0"],
      "argument --steps: must be an integer >= 1, got 0"),
-    (["train", "--data", "d", "--out", "o", "--max_seconds", "-3"],
+    (["train", "--data", "d", "--run", "o", "--max_seconds", "-3"],
      "argument --max_seconds: must be a finite number > 0, got -3"),
-    (["train", "--data", "d", "--out", "o", "--eval_every", "1"],
+    (["train", "--data", "d", "--run", "o", "--eval_every", "1"],
      "argument --eval_every: must be an integer >= 2, got 1"),
     (["render", "--run", "r", "--chunk_size", "0"], "argument --chunk_size: must be an integer"),
-    (["edit", "--out", "o", "--box", "0", "0", "nan", "1", "1", "1"],
+    (["edit", "--edit", "o", "--box", "0", "0", "nan", "1", "1", "1"],
      "argument --box: must be a finite number, got nan"),
-    (["edit", "--out", "o", "--size", "abc"], "argument --size: must be a finite number > 0"),
-    (["preview", "--out", "o", "--seeds", "1", "-2"], "argument --seeds: must be an integer >= 0"),
+    (["edit", "--edit", "o", "--size", "abc"], "argument --size: must be a finite number > 0"),
+    (["preview", "--edit", "o", "--seeds", "1", "-2"], "argument --seeds: must be an integer >= 0"),
     (["synthesize", "--out", "o", "--seed", "x"], "argument --seed: must be an integer >= 0"),
 ])
 def test_a_bad_flag_is_a_usage_error_naming_the_flag(capsys, argv, message):

@@ -6,15 +6,15 @@ from __future__ import annotations
 import argparse
 import time
 
-from signerf_jax import configs, ownership
+from signerf_jax import cli, configs, ownership
 from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.validation import NonNegativeInt, argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--out", required=True,
-                      help="directory to write the dataset to: new, empty, or a dataset "
-                      "`signerf synthesize` wrote (never a folder of other files)")
+  cli.add_output_argument(parser, "--out", required=True,
+                          help="directory to write the dataset to: new, empty, or a dataset "
+                          "`signerf synthesize` wrote (never a folder of other files)")
   configs.add_gin_arguments(parser, "synthetic_cameras.image_size = 128")
   parser.add_argument("--seed", type=argument_type(NonNegativeInt), default=0,
                       help="random seed of the scene")

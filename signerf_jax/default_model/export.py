@@ -47,9 +47,8 @@ TRANSFORMERS_WEIGHTS = "model.safetensors"
 PIPELINE_CLASS = "StableDiffusionControlNetInpaintPipeline"
 COMPONENTS = ("vae", "unet", "text_encoder", "controlnet")  # The trained parameter sets.
 # Edits with this model grow the proxy's mask by 8 px at 512 (1 px in a 64 px tile): with the
-# 24 other models get it repaints the ring blurred and the edited NeRF keeps it as a halo (on
-# stitch: experiments/results/nerf_consistency_open_prompt_stitch_300s_dilation_8.json; the
-# demo's gin_configs/demo.gin).
+# 24 other models get it repaints the ring blurred and the edited NeRF keeps it as a halo (on a
+# real scene: docs/results.md; the demo's gin_configs/demo.gin).
 MASK_DILATION_RADIUS = 8.0
 
 

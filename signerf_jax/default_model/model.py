@@ -193,8 +193,8 @@ def build(architecture: Architecture, vocab_size: int) -> Components:
 def initial_params(shapes: dict[tuple[str, ...], Any], rng: np.random.Generator) -> dict:
   """Starting parameters for the abstract {Flax path: shape} `shapes`, built in numpy.
 
-  Flax's own initialisers compile one random-number program per parameter, which took a minute
-  even for a tiny UNet here; these are the same rules drawn on the host: kernels
+  Flax's own initialisers compile one random-number program per parameter, which takes about a
+  minute even for a tiny UNet; these are the same rules drawn on the host: kernels
   N(0, 1 / fan_in) (LeCun normal), embeddings N(0, 0.02^2) (CLIP's), norm scales 1, biases 0.
   """
   flat = {}

@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from signerf_jax import configs
 from signerf_jax.data import poses as poses_lib
 from signerf_jax.data import raycast
 from signerf_jax.data import synthetic
@@ -56,7 +55,7 @@ _Y_UP_FROM_Z_UP = trimesh.transformations.rotation_matrix(-np.pi / 2, (1.0, 0.0,
 def default_mesh_directory() -> Path:
   """$SIGNERF_SHARED_DATA/meshes, else ../shared/data/meshes next to the repository (read now)."""
   shared = os.environ.get("SIGNERF_SHARED_DATA",
-                          configs.GIN_CONFIG_DIR.parent.parent / "shared" / "data")
+                          Path(__file__).resolve().parents[3] / "shared" / "data")
   return Path(shared) / "meshes"
 
 

@@ -12,8 +12,8 @@ cache between the two matmuls and the softmax. The result equals plain softmax a
 float rounding. Only tiny problems use the plain batched einsum.
 
 On a CPU, float32 attention instead runs a fused kernel of the same loop (cpu_attention.py: the
-scores stay in registers and cache, ~1.5x XLA's ops at 4,096 tokens) where it builds and the head
-size suits it; its gradient is the XLA path's.
+scores stay in registers and cache: faster than XLA's ops, docs/performance.md) where it
+builds and the head size suits it; its gradient is the XLA path's.
 """
 
 from __future__ import annotations
@@ -45,8 +45,7 @@ class AttentionOptions(validation.CheckedFields):
       (e.g. 2**31) evaluates each chunk against all keys at once.
     max_plain_scores: largest batch * heads * queries * keys evaluated as one plain einsum
       (2**18 elements = 1 MB of float32 scores); larger problems take the chunked path, which
-      on CPU is also the faster one from a few hundred tokens up (e.g. 2x for 4,096 queries
-      against 77 text tokens).
+      on CPU is also the faster one from a few hundred tokens up.
     cpu_kernel: float32 attention on a CPU backend runs the fused kernel (cpu_attention.py)
       where it builds and takes the head size; the three fields above then apply only to its
       gradient. False: always XLA's ops.

@@ -58,20 +58,17 @@ class Linear(nn.Module):
     return y
 
 
-# How convolutions are computed (measured against XLA's own convolution, batch 2): 3x3 same-size
-# ones on small maps as one im2col matmul (1.7x faster at 8x8x1280, even at 16x16), on large maps
-# by Winograd's algorithm once there are enough output tiles to pay for the input and output
-# transforms (the kernel's is computed once a sampler run: XLA hoists it out of the denoising
-# loop, experiments/bench_winograd_compile.py), and as long as the transformed input stays small
-# -- full-resolution VAE maps of a 1024x1536 sheet would need gigabytes. With at least
-# WINOGRAD_MIN_TILES 4x4 tiles by F(4x4, 3x3) (transformed input 2.25x the input), else with that
-# many 2x2 tiles by F(2x2, 3x3) (4x the input):
-# on a Zen 3 CPU F(4x4) is 1.36-1.42x faster than F(2x2) at the UNet's 64x64 level and 1.56-1.72x
-# on SD's VAE decoder maps of 128-512 px, F(2x2) stays ahead at 32x32x640 (128 4x4 tiles), and
-# F(2x2) was 1.15-1.4x faster than XLA at 64x64x320 and 32x32x640 on the Zen 4 host of the first
-# measurements (experiments/bench_convolutions.py). XLA's bfloat16 convolution is no faster than
-# float32 while bfloat16 matmuls are ~1.8x faster, so with bfloat16 compute every other convolution
-# is an im2col matmul too when its patch matrix fits in IM2COL_MAX_BYTES.
+# How convolutions are computed, each way where it measured faster on CPUs than XLA's own
+# convolution (docs/performance.md): 3x3 same-size ones on small maps as one im2col matmul, on
+# large maps by Winograd's algorithm once there are enough output tiles to pay for the input and
+# output transforms (the kernel's is computed once a sampler run: XLA hoists it out of the
+# denoising loop), and as long as the transformed input stays small -- full-resolution VAE maps
+# of a 1024x1536 sheet would need gigabytes. With at least WINOGRAD_MIN_TILES 4x4 tiles by
+# F(4x4, 3x3) (transformed input 2.25x the input), the faster of the two on large maps, else
+# with that many 2x2 tiles by F(2x2, 3x3) (4x the input), which stays ahead where 4x4 tiles are
+# too few. XLA's bfloat16 convolution is no faster than float32 while bfloat16 matmuls are, so
+# with bfloat16 compute every other convolution is an im2col matmul too when its patch matrix
+# fits in IM2COL_MAX_BYTES.
 IM2COL_MAX_POSITIONS = 512
 IM2COL_MAX_BYTES = 2**29
 WINOGRAD_MIN_TILES = 512
@@ -87,11 +84,10 @@ _tracing = threading.local()
 def winograd_convolutions(enabled: bool) -> Iterator[None]:
   """Allows (the default) or forbids Winograd convolutions in what is traced inside.
 
-  Winograd's transforms are many small ops for XLA to compile: in the shipped model's sampler
-  they make a batch of four sheets 13% faster per call but cost 3 s more compilation, which a
-  program run a few times (the preview's) does not earn back. A jitted function that traces
-  under this must have `enabled` among its static arguments, so that each choice is its own
-  compiled program.
+  Winograd's transforms are many small ops for XLA to compile: they make each call faster but
+  add more compilation than a program run a few times (the preview's) earns back. A jitted
+  function that traces under this must have `enabled` among its static arguments, so that each
+  choice is its own compiled program.
   """
   previous = getattr(_tracing, "winograd", True)
   _tracing.winograd = enabled
@@ -137,8 +133,8 @@ def xla_conv(x: jax.Array, kernel: jax.Array, stride: int, padding: Padding,
 def _differentiated_as(reference):
   """Gives a fast exact rewrite `fast(x, kernel, compute_dtype)` of a convolution the gradient of
   `reference` (the same function by XLA's convolution). The rewrites' many slices and stacks
-  transpose into slow scatters: a small UNet's backward pass took 4.1 s with them against
-  1.3 s this way (training the default model), while forward passes keep the fast form."""
+  transpose into slow scatters that made a backward pass (training the default model) about
+  three times slower than this way, while forward passes keep the fast form."""
 
   def decorate(fast):
     @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
@@ -246,8 +242,8 @@ class GroupNorm(nn.Module):
   """torch.nn.GroupNorm over the channels of [B, ..., C] (statistics per sample and group).
 
   Sums are taken per channel over the positions first (a reduction along the outer axis of the
-  channels-last array, which XLA vectorises over channels), then per group: measured 1.3-1.5x
-  faster on CPU than reducing a [B, positions, groups, channels per group] view directly.
+  channels-last array, which XLA vectorises over channels), then per group: measured faster on
+  CPUs than reducing a [B, positions, groups, channels per group] view directly.
   """
   num_groups: int
   epsilon: float

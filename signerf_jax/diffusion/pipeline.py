@@ -316,9 +316,8 @@ def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask
     key: a PRNG key (split into one per sample) or [B] keys (sample b uses keys[b]).
     noise: instead of `key`, every random draw as arrays (see `sampler.SamplerNoise`).
     options: the generation knobs.
-    winograd_convolutions: False compiles faster and samples slower (the shipped model's
-      sheet: 0.6 s less and 18% slower for one, 3.1 s less and 13% slower for four;
-      `sampler.SamplerSettings`): for a program that runs a few times.
+    winograd_convolutions: False compiles faster and samples slower
+      (`sampler.SamplerSettings`; docs/performance.md): for a program that runs a few times.
 
   Returns:
     [B, H, W, 3] float32 images in [0, 1].

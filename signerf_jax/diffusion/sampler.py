@@ -182,8 +182,8 @@ def draw_noise(keys: jax.Array, latent_shape: tuple[int, int, int], num_steps: i
   def one_sample(key):
     latents_key, image_key, masked_image_key, steps_key = jax.random.split(key, 4)
     # Drawn flat and reshaped: the same values (partitionable threefry counts elements in
-    # row-major order), but XLA compiles a flat draw 3x faster than a 3-D or 4-D one (1.9 s
-    # against 0.6 s here, most of a cold preview's compilation outside the sampler).
+    # row-major order), but XLA compiles a flat draw ~3x faster than a 3-D or 4-D one, whose
+    # compilation was most of a cold preview's outside the sampler.
     normal = lambda k, shape: jax.random.normal(k, (math.prod(shape),), jnp.float32).reshape(
         shape)
     return SamplerNoise(latents=normal(latents_key, latent_shape),
@@ -378,13 +378,12 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
 
 # How XLA compiles the sampler for float32 models. jaxlib 0.10's XLA:CPU hands every matmul to
 # YNNPACK by default (a "__ynn_fusion" per dot in the optimised HLO); this option keeps them XLA's
-# own dots. On this project's Zen 3 host (AVX2) that samples the shipped model's sheet 1.20x faster
-# at one sheet, 1.09x at the update's four (experiments/bench_sampler_options.py); SD 1.5's UNet
-# changes within noise (0.91-1.08x, bench_diffusion.py), NeRF training is ~10% slower, so only
-# this program sets it. bfloat16 models keep XLA's defaults: without YNNPACK SD 1.5's bfloat16
-# UNet ran 1.18x slower at 32x32 here (the shipped model's 1.26-1.46x faster), and bfloat16 pays
-# only on CPUs with bfloat16 instructions, which this host lacks. On GPUs and TPUs, where the
-# option means nothing and this project cannot test it, the sampler keeps XLA's defaults too.
+# own dots, which measured faster for the shipped model's sampler on CPUs (docs/performance.md);
+# SD 1.5's UNet changes within noise and NeRF training is slower, so only this program sets it.
+# bfloat16 models keep XLA's defaults: without YNNPACK SD 1.5's bfloat16 UNet ran slower (the
+# shipped model's faster), and those measurements were on a CPU without bfloat16 instructions,
+# while bfloat16 pays only on CPUs with them. On GPUs and TPUs, where the option means nothing
+# and this project cannot test it, the sampler keeps XLA's defaults too.
 FLOAT32_COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 _FLOAT32_SAMPLE = jax.jit(sample.__wrapped__, static_argnames=("settings",),
                           compiler_options=FLOAT32_COMPILER_OPTIONS)

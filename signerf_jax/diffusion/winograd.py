@@ -9,7 +9,7 @@ fewer for m = 4. The transforms are adds and a few constant multiplies, written 
 term (a matmul with a tiny constant matrix compiles to slow transposes) and applied separably:
 along the rows of all tiles at once, then along their columns, which gives XLA one expression
 per row and per column of a tile to compile instead of one per tile position (SD's UNet compiles
-9-21% faster). F(4 x 4) also keeps a smaller transformed input (36 / 16 of the input against
+faster). F(4 x 4) also keeps a smaller transformed input (36 / 16 of the input against
 16 / 4).
 
 Accuracy: F(2 x 2)'s transforms are exact but for the kernel's halves, so float32 results

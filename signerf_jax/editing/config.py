@@ -84,10 +84,9 @@ class EditConfig(validation.CheckedFields):
       a warning naming the words it knows).
     diffusion_precision: "float32", or "bfloat16": the diffusion model's weights stored and its
       matmuls and convolutions computed in bfloat16 (float32 accumulation). On CPUs with bf16
-      instructions (AVX512_BF16: Zen 4, Zen 5) its sampling is 1.28x faster with the shipped
-      model and 1.3-1.7x for SD 1.5-sized UNets; without them (Zen 3) 0.64-0.79x, slower, and
-      loading warns (README, "Performance"). The images differ by ~0.004 in mean absolute
-      value.
+      instructions (e.g. AVX512_BF16) sampling is faster, with the shipped model and SD-sized
+      UNets alike; without them it is slower, and loading warns (docs/performance.md). The
+      images differ by ~0.004 in mean absolute value.
   """
 
   data: str = ""
@@ -190,10 +189,8 @@ class SheetConfig(validation.CheckedFields):
       (`camera_angle_x`, `frames[].transform_matrix`, scene frame) with one camera per tile.
     crops: tiles of dataset views are crops around the selection (`editing.crops`), pasted back
       through the mask, instead of whole downscaled frames (False). On by default: the
-      selection gets 2-23x more pixels of its tile (experiments/results/
-      measure_sheet_crops.json), and edits measure better end to end (the demo's crops
-      ablation, experiments/results/ablations.json; the real-scene edit,
-      real_scene_edit.json's crops_comparison).
+      selection gets more of its tile's pixels (often many times more), and edits measure
+      better end to end, in the demo and on a real scene (docs/results.md).
     crop_margin, crop_max_upscale: see `crops.selection_crop_boxes`.
   """
 

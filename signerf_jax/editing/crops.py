@@ -2,7 +2,7 @@
 
 The paper puts whole frames, downscaled, into the sheet, and lists the lost resolution as a
 limitation. Here a tile may instead be a crop around the selection's projected bounding box,
-so the selection covers far more of the tile (measured in experiments/measure_sheet_crops.py);
+so the selection covers far more of the tile (docs/results.md);
 the edited tile is then pasted back into the full-resolution image through the mask.
 
 A crop box is [x0, y0, width, height] in (continuous) pixels of the source image; tile pixel

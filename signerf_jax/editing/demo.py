@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Annotated, Any
 
-from signerf_jax import configs, files, ownership, validation
+from signerf_jax import cli, configs, files, ownership, validation
 from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.editing import commands
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR, PRIMITIVE_PREFIX
@@ -49,9 +49,9 @@ class DemoSettings(validation.CheckedFields):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--out", default="outputs/demo",
-                      help="output directory: new or empty, or an earlier demo's (resumed); "
-                      "writes scene/ (the synthetic scene) and edit/ (the edit) there")
+  cli.add_output_argument(parser, "--out", default="outputs/demo",
+                          help="output directory: new or empty, or an earlier demo's (resumed); "
+                          "writes scene/ (the synthetic scene) and edit/ (the edit) there")
   parser.add_argument("--prompt", help="what to insert (default: demo.prompt, 'a red cow')")
   parser.add_argument("--model", help="a diffusers ControlNet inpainting pipeline directory "
                       "(default: the shipped model)")

@@ -47,8 +47,8 @@ MESH_AXIS = "views"
 MASK_DILATION_KEY = "_signerf_mask_dilation_radius"
 DEFAULT_MASK_DILATION = 24.0
 # Instructions that multiply bf16 natively, as /proc/cpuinfo names them (x86 AVX512_BF16 and AMX,
-# Arm BF16): without them XLA's bf16 matmuls take 1.3-1.6x the time of fp32 ones, so bf16
-# sampling is slower (experiments/results/profile_diffusion_zen3.json, README "Performance").
+# Arm BF16): without them XLA's bf16 matmuls take longer than fp32 ones, so bf16 sampling is
+# slower (docs/performance.md).
 BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
 CPUINFO = Path("/proc/cpuinfo")
 _RECIPE = re.compile(r"^\d+(/\d+(,\d+)*@\d+)*$")
@@ -146,7 +146,7 @@ def load_generator(model: str, controlnet: str, scheduler_kind: str, prompt: str
   if dtype == jnp.bfloat16 and cpu_lacks_bf16_instructions():
     warnings.warn("EditConfig.diffusion_precision = 'bfloat16' on a CPU without bf16 "
                   f"instructions (none of {sorted(BF16_CPU_FLAGS)} in {CPUINFO}): sampling is "
-                  "slower than in float32 there (0.64-0.79x measured on a Zen 3)", stacklevel=2)
+                  "slower than in float32 there (docs/performance.md)", stacklevel=2)
   pipeline = pipeline_lib.load_pipeline(model, controlnet=controlnet or None,
                                         scheduler_kind=scheduler_kind or None,
                                         dtype=dtype, compute_dtype=dtype, attention=attention)

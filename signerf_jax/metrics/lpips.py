@@ -13,8 +13,9 @@ Reproduces the `lpips` package's `LPIPS(net='vgg', version='0.1')`:
      squared difference to one channel, which is averaged over the image;
   5. the five layer scores are summed: one distance per image pair.
 
-Weights are user-provided (none can be downloaded here), in one safetensors file with
-torchvision's VGG16 names for the backbone and the lpips package's names for the linear layers:
+Weights are user-provided (the package neither ships nor downloads them), in one safetensors
+file with torchvision's VGG16 names for the backbone and the lpips package's names for the
+linear layers:
   features.{0,2,5,7,10,12,14,17,19,21,24,26,28}.weight  [out, in, 3, 3]   (torchvision vgg16)
   features.{...}.bias                                   [out]
   lin{0..4}.model.1.weight                              [1, C, 1, 1]      (lpips weights/v0.1/vgg.pth)

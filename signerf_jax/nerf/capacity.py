@@ -148,27 +148,22 @@ class CapacityRules(validation.CheckedFields):
     sample_groups: independent sample budgets per batch (occupancy sampler); 8 lets 1, 2, 4
       or 8 devices share training evenly (`Capacity.sample_groups`).
     appearance_embedding: per-image appearance codes (NeRF-W). Held-out views render with the
-      mean code, which is no training view's own: at 600 s the codes cost fern 0.3 dB (25.4
-      against 25.7 dB) and stitch 200^2 0.6 dB (26.3 against 26.9), so they are off unless
+      mean code, which is no training view's own, so the codes lower held-out quality on
+      forward-facing and 360-degree captures alike (docs/performance.md); they are off unless
       asked for (a capture whose exposure varies a lot may still want them).
     render_sample_fraction: the share of the radiance field's intervals per ray rendering
-      takes (1: render as trained); the proposal networks keep theirs. Scaling both cost stitch
-      200^2 0.49 dB at two thirds (26.53 against 27.03 dB, 1.35x faster;
-      results/bench_nerf_render_stitch_fractions.json); the field's alone, over the same 22
-      held-out views of a 300-s run, 2/3, 1/2 and 1/3 render 1.19x, 1.55x and 1.77x faster for
-      0.12, 0.38 and 1.27 dB (results/bench_render_quality.json). Rendering takes every sample
-      unless asked; the viewer's moving-camera frames take a third
+      takes (1: render as trained); the proposal networks keep theirs, as scaling them too
+      loses more quality for the same speed-up. Fewer field samples render faster for a loss
+      of quality that grows as the fraction shrinks (docs/performance.md), so rendering takes
+      every sample unless asked; the viewer's moving-camera frames take a third
       (`viewer.progressive.MOVING_SAMPLE_FRACTION`).
     pixel_samples: `Capacity.pixel_samples`; None derives it: 2 for sparse bounded captures
       (fewer than `SPARSE_VIEWS` training views), 1 otherwise. Between so few views the field is
       unconstrained, and one ray through each pixel's centre fits a photo's pixel (the mean
-      over its area) with whatever lies between the rays: lego 100^2 with 12 views, 300 s,
-      27.26 / 27.49 dB (two seeds) rendered 2 x 2 rays a pixel, 25.97 / 26.23 through pixel
-      centres, against 26.88 / 26.43 dB trained one ray a pixel
-      (results/lego_12_pixel_model.json; the benchmark's 27.28 dB:
-      results/bench_nerf_pixel_samples.json). Lego's 100 views gain nothing (31.63 against
-      31.62 dB rendered 2 x 2), and a sparse real 360-degree capture loses: stitch 200^2 with
-      13 of its views, 300 s, 16.63 dB against 19.07 (results/stitch_13_pixel_model.json).
+      over its area) with whatever lies between the rays; averaging 2 x 2 rays a pixel fits
+      the photos' pixels as they were taken, which improves held-out views of a sparse object
+      capture. A capture with many views gains nothing, and a sparse real 360-degree
+      (unbounded) capture loses (docs/performance.md), hence bounded and sparse only.
     overrides: `Capacity` fields to force after deriving, e.g. a fixed large configuration for
       comparison; None for none. (A mapping makes the rules unhashable: they are never a static
       jit argument, only the `Capacity` they produce is.)
@@ -218,13 +213,10 @@ def _samples_and_rays(scene: SceneInfo, rules: CapacityRules) -> tuple[tuple[int
   training step)."""
   # One proposal network and half the sample budget a step, as more and smaller steps fit more
   # in a time budget; 24 samples a ray for forward-facing scenes whatever the image size, more
-  # for larger images of 360-degree captures (within nerfacto's ranges). Measured at 600 s:
-  # fern images_8 (results/bench_nerf_fern_batch.json) 48 samples and 1,280 rays 25.1 dB, 24
-  # and 2,560 25.4, 16 and 4,096 24.5; without appearance codes 24 and 2,560 25.7, 1,280 25.9,
-  # 640 25.7; one proposal network 26.0. stitch 200^2 (results/bench_nerf_stitch_batch.json)
-  # 26.3 dB with appearance codes, two proposal networks and 2,560 rays; 26.9 without the
-  # codes, 27.6 with one proposal network, 27.6 with 1,280 rays (and 23.3 instead of 20.9 dB
-  # at 60 s).
+  # for larger images of 360-degree captures (within nerfacto's ranges). Of the samples per
+  # ray, rays per step and proposal networks tried under a fixed time budget, on a
+  # forward-facing and a 360-degree capture, these gave the best held-out quality, the more so
+  # for short budgets (docs/performance.md).
   forward_facing = scene.perspective is not None
   pixels_scale = math.sqrt(scene.width * scene.height) / 256.0
   samples_per_ray = 24 if forward_facing else int(np.clip(_round_up(24 * pixels_scale, 8), 16, 48))
@@ -278,7 +270,7 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
       proposal_log2_table_size=min(log2_table_size, 17),
       # 360-degree captures put cameras among the content they see. Forward-facing ones see
       # it all in front of them, much of it nearer than the scene centre, whose gradients the
-      # scaling would damp (fern: 22.2 dB with it, 23.0 without, at 300 s).
+      # scaling would damp (it lowers a forward-facing capture's quality).
       near_gradient_scaling=contract,
       perspective_warp=scene.perspective is not None,
       pixel_samples=rules.pixel_samples or (2 if bounded and scene.num_images < SPARSE_VIEWS

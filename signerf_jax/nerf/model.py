@@ -38,7 +38,7 @@ from signerf_jax.nerf.fields import DensityField, RadianceField
 OCCUPANCY_DECAY = 0.95
 # Optical depth of the untrained field along one scene extent (see
 # `RadianceField.initial_density`): ~instant-NGP's density 1 per unit cube. Lower values (0.1)
-# left surfaces soft for hundreds of steps (synthetic scene: 3.7 dB worse, 2.5x the depth error).
+# left surfaces soft for hundreds of steps (worse images and depth on a synthetic scene).
 INITIAL_OPTICAL_DEPTH = 1.0
 # Proposal networks only shape the sampling: a few levels suffice (nerfacto uses 5).
 PROPOSAL_LEVELS = 5
@@ -155,8 +155,8 @@ def init_variables(model: NerfModel, key) -> Variables:
   """Fresh variables (random fields, occupancy all unvisited; for an edit region, an untrained
   original too, to be replaced by the original scene's variables).
 
-  Jitted: run eagerly, each of the initialisers' ~90 small operations compiled on its own
-  (stitch 200^2: 5.8 s eagerly, 1.9 s jitted, with an empty compilation cache)."""
+  Jitted: run eagerly, each of the initialisers' ~90 small operations would be compiled on its
+  own, about three times as long as compiling the one jitted program."""
   keys = jax.random.split(key, 1 + len(model.proposal_fields))
   points = jnp.full((1, 3), 0.5, jnp.float32)
   directions = jnp.array([[0.0, 0.0, 1.0]], jnp.float32)

@@ -22,8 +22,8 @@ from signerf_jax.errors import InputError
 # Cells not yet evaluated hold this value and count as occupied (densities are >= 0).
 UNVISITED = -1.0
 # Rendering marches through the box around the occupied cells but leaves out specks: small faint
-# groups of cells. Lego trained 300 s at 64^3 has ~100 of 1-3 cells (alpha across a cell < 5%)
-# scattered over the whole scene box, beside one group of 15,657 cells (alpha ~1).
+# groups of cells. A trained synthetic object's grid can hold a hundred groups of 1-3 faint
+# cells scattered over the whole scene box, beside the one large, opaque group of the object.
 SPECK_MAX_CELLS = 8
 SPECK_MAX_ALPHA = 0.25
 

@@ -58,9 +58,9 @@ def _render_chunk(model: nerf_model.NerfModel, variables, chunk: camera.Rays, ne
   return {name: outputs[name] for name in IMAGE_OUTPUTS}
 
 
-# The last (model, occupancy grid, `ray_samples.render_march`): its host work (7 ms at 64^3,
-# 42 ms at 128^3) would otherwise repeat for every view of a call and every viewer frame. The
-# grid is held, so `is` cannot match a new array at a recycled address.
+# The last (model, occupancy grid, `ray_samples.render_march`): its host work (tens of
+# milliseconds for a large grid) would otherwise repeat for every view of a call and every
+# viewer frame. The grid is held, so `is` cannot match a new array at a recycled address.
 _last_march: list = []
 
 
@@ -185,7 +185,8 @@ def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Camer
   Args:
     pixels: None (every pixel), or [N, H, W] bool: render only these rays, all cameras' in one
       stream of chunks; every output is 0 at the other pixels. A measurement inside masks then
-      costs only the masks' rays (an edit's fit on stitch: 7.5% of the pixels, 13x faster).
+      costs only the masks' rays (an edit's fit: a small share of the pixels, many times
+      faster).
     supersampling: each output pixel is the mean of supersampling^2 rays through a regular
       grid of points inside it (`camera.subpixel_positions`), as a photo's pixel is the mean of
       the light over its area (anti-aliasing; supersampling^2 times the work); 1: the centre

@@ -328,7 +328,7 @@ class Viewer:
     with ownership.claimed(self.edit_dir, ownership.EDIT,
                            inputs=(("run", self.run_dir), ("data", self.dataset.root))):
       path = configs.save_gin_config(self.edit_dir)
-    self._say(f"Saved to `{path}`: `signerf edit --out {self.edit_dir}` continues from here.")
+    self._say(f"Saved to `{path}`: `signerf edit --edit {self.edit_dir}` continues from here.")
     return path
 
   def preview(self) -> list[Path]:

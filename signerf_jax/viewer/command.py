@@ -1,7 +1,7 @@
 """`signerf view`: the trained NeRF, its cameras and the edit's selection in a browser.
 
     signerf view --run runs/scene --edit edits/cow       # then open the printed address
-    signerf edit --out edits/cow                         # continues from what was saved
+    signerf edit --edit edits/cow                        # continues from what was saved
 
 Move the selection with its handle (or type its position, size and heading in the panel, in
 the dataset's own units), stand a proxy on the surface under it, preview candidate sheets with
@@ -27,16 +27,19 @@ from signerf_jax.viewer import access
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--run", required=True, help="the trained NeRF (`signerf train`)")
-  parser.add_argument("--edit", help="the edit directory the preview and save write to "
-                      "(default: RUN_edit beside the run)")
+  parser.add_argument("--edit", help="the edit directory the preview and save write to, as "
+                      "`signerf place`, `preview` and `edit` take it (default: RUN_edit beside "
+                      "the run)")
   parser.add_argument("--proxy", default=PRIMITIVE_PREFIX + "box",
                       help="the proxy to start with when the edit has no selection yet: a mesh "
                       "file or primitive:<box, sphere, cylinder, capsule, cow>")
   parser.add_argument("--host", default="127.0.0.1",
-                      help="address to serve on (default: this machine only; 0.0.0.0: every "
-                      "interface, so any machine that can reach this one can connect, with the "
-                      "printed token)")
-  parser.add_argument("--port", type=argument_type(int), default=8080)
+                      help="address to serve on (default: %(default)s, this machine only; "
+                      "0.0.0.0: every interface, so any machine that can reach this one can "
+                      "connect, with the printed token)")
+  parser.add_argument("--port", type=argument_type(int), default=8080,
+                      help="port to serve on, or the next free one when it is taken (0: one the "
+                      "system picks); the printed address names it")
 
 
 def run(args: argparse.Namespace) -> int:

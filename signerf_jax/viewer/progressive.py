@@ -20,15 +20,14 @@ import numpy as np
 from signerf_jax.nerf import render
 from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
 
-# Frame heights in pixels, coarse to fine: 64 px within a second on 2 CPU cores, 256 px within
-# ~10 s (`experiments/bench_viewer.py`).
+# Frame heights in pixels, coarse to fine: the coarsest answers a moved camera within about a
+# second even on a small CPU, the finer ones follow (docs/performance.md).
 HEIGHTS = (64, 128, 256)
 CHUNK_SIZE = 4096
 # Frames before the finest, what a moving camera sees, render this fraction of the radiance
 # field's samples (proposal sampler, `Capacity.render_sample_fraction`); the finest renders as
-# the model says. On stitch 200 px (300-s runs) a third of the field's samples renders 1.8x
-# the rays/s of every sample for 1.3 dB less, 2.2-2.4x the rays/s of the renderer before at
-# 1.1-1.4 dB more (experiments/results/bench_render_quality.json).
+# the model says. A third of the field's samples renders nearly twice the rays per second of
+# every sample for a modest loss of quality (docs/performance.md).
 MOVING_SAMPLE_FRACTION = 1 / 3
 
 

@@ -71,6 +71,7 @@ def reference_outputs(model, ids):
             "text_embeds": output.text_embeds.numpy() if hasattr(output, "text_embeds") else None}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("with_projection, hidden_act, eos_token_id", [
     (False, "quick_gelu", 2),  # SD 1.x: legacy config, pooled at argmax(ids).
     (False, "gelu", MODERN_EOS),  # SD 2.x style: pooled at the first eos.

@@ -116,6 +116,7 @@ def test_resize_is_bit_exact_with_pillow(input_size, output_size):
                                 expected)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("height, width", [(224, 224), (480, 640), (300, 227), (50, 70)])
 def test_preprocessing_matches_transformers_pil_backend(height, width):
   images = smooth_images(2, height, width, seed=height)
@@ -139,6 +140,7 @@ def test_preprocessor_config_fields_are_read_and_unsupported_ones_refused(tmp_pa
 # Towers and the directional similarity.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("with_projection, hidden_act", [(True, "quick_gelu"), (False, "gelu")])
 def test_vision_tower_matches_transformers(tmp_path, with_projection, hidden_act):
   torch.manual_seed(1)

@@ -11,6 +11,8 @@ import pytest
 from signerf_jax.default_model import export, stage_settings, stages, training
 from signerf_jax.errors import InputError
 
+pytestmark = pytest.mark.slow
+
 # No steps: what a stage returns is exactly what it started from (and nothing compiles).
 STARTS_ONLY = stages.TrainingPlan(
     seed=1, vae=stage_settings.VaeStage(num_steps=0, scaling_views=16),

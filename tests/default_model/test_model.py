@@ -58,6 +58,7 @@ def test_diffusers_and_transformers_build_the_same_parameters(default_components
   assert shapes == clip_text.expected_shapes(default_components.text, prefix="")
 
 
+@pytest.mark.slow
 def test_initial_controlnet_adds_nothing(tiny_architecture):
   """It starts as a copy of the UNet's down path whose residuals are all zero (so the UNet's
   output is unchanged at any scale)."""

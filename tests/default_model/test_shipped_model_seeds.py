@@ -16,6 +16,8 @@ from signerf_jax.editing import generation, sheet
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.metrics import colors
 
+pytestmark = pytest.mark.slow
+
 SEEDS = (0, 1, 2, 3)
 OPTIONS = GenerationOptions(num_inference_steps=20, guidance_scale=5.0, paste_back=True)
 # Measured with these inputs: the pairs' in-mask mean absolute RGB difference is 0.12-0.28 with

@@ -65,6 +65,7 @@ def test_vae_batch_greys_out_masked_views(tiny_training_data):
   assert not np.any(masked["object"][..., 0][changed])
 
 
+@pytest.mark.slow
 def test_object_weight_weights_the_reconstruction_of_object_pixels(components,
                                                                    tiny_training_data):
   batch = training_data.vae_batch(tiny_training_data, np.random.default_rng(0), 4, 0.0)
@@ -76,6 +77,7 @@ def test_object_weight_weights_the_reconstruction_of_object_pixels(components,
   assert loss(5.0, batch["object"]) != pytest.approx(loss(1.0, batch["object"]), rel=1e-4)
 
 
+@pytest.mark.slow
 def test_inpainting_conditioning_follows_diffusers(components):
   """Masked pixels are 0 in [-1, 1] before encoding; the latent mask takes every f-th pixel."""
   vae_params = model.init_vae(components, np.random.default_rng(0))
@@ -151,6 +153,7 @@ def _joint_stage_loss_fns(setting, values, components, tiny_architecture, tiny_t
   return {value: setup[0] for value, setup in setups.items()}, params, frozen, batch
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage", ["unet", "unet_alone", "controlnet"])
 def test_diffusion_steps_reduce_the_loss(stage, components, tiny_architecture,
                                          tiny_training_data):
@@ -168,6 +171,7 @@ def test_object_cells_mark_latent_cells_holding_any_object_pixel():
   np.testing.assert_array_equal(cells, [[[0, 0], [1, 0]], [[0, 1], [0, 0]]])
 
 
+@pytest.mark.slow
 def test_masked_ground_weight_weights_only_masked_cells_without_object(
     components, tiny_architecture, tiny_training_data):
   loss_fns, params, frozen, batch = _joint_stage_loss_fns(
@@ -187,6 +191,7 @@ def test_masked_ground_weight_weights_only_masked_cells_without_object(
   assert loss(4.0, covered) == pytest.approx(loss(1.0, covered), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero(
     components, tiny_architecture, tiny_training_data):
   loss_fns, params, frozen, batch = _joint_stage_loss_fns(
@@ -206,6 +211,7 @@ def test_control_dropout_sets_the_controlnet_scale_of_a_share_of_samples_to_zero
   assert all(changed[0.0]) and not any(changed[1.0]), changed
 
 
+@pytest.mark.slow
 def test_resumed_training_equals_uninterrupted(tmp_path, components, tiny_training_data):
   loss_fn = losses.vae_loss_fn(components, VAE_SETTINGS)
   make_batch = lambda step: training_data.vae_batch(
@@ -259,6 +265,7 @@ def test_checkpoint_restores_into_other_step_counts_and_refuses_another_model(
     training.restore_checkpoint(path, wider)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("function", ["winograd_2x2", "winograd_4x4", "upsample"])
 def test_fast_convolutions_take_the_convolution_gradient(function):
   """Training differentiates the fast convolution rewrites through XLA's convolution."""

@@ -95,6 +95,7 @@ def test_a_second_call_with_new_values_does_not_recompile(options):
   assert attention._cache_size() == compiled  # pylint: disable=protected-access
 
 
+@pytest.mark.slow
 def test_bfloat16_compute_is_close():
   query, key, value = random_qkv(128, 128, scale=1.0)
   expected = reference_attention(query, key, value)

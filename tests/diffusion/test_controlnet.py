@@ -22,6 +22,7 @@ def test_guess_mode_scales_match_torch_logspace():
   np.testing.assert_allclose(guess_mode_scales(7), torch.logspace(-1, 0, 7).numpy(), rtol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant, guess_mode", [
     ("sd1", False), ("sdxl", True), ("pooled", True)])
 def test_residuals_match_diffusers(reference_controlnets, reference_inputs, flax_inputs, variant,
@@ -46,6 +47,7 @@ def test_residuals_match_diffusers(reference_controlnets, reference_inputs, flax
   assert apply._cache_size() == 1  # pylint: disable=protected-access
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["sd1", "sdxl"])
 def test_unet_with_controlnet_matches_diffusers(reference_unets, reference_controlnets,
                                                 reference_inputs, flax_inputs, variant):

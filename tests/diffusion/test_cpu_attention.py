@@ -41,6 +41,7 @@ def test_builds_and_registers_on_this_machine():
   assert cpu_attention.load()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("head_dim", [8, 16, 40, 64, 80, 160])
 @pytest.mark.parametrize("query_tokens, key_tokens", [(1, 1), (63, 95), (65, 97), (513, 300)])
 def test_matches_softmax_attention(head_dim, query_tokens, key_tokens):
@@ -108,6 +109,7 @@ SHARDED_CALL = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_a_batch_sharded_call_runs_each_device_on_its_own_entries():
   environment = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="4")
   result = subprocess.run([sys.executable, "-c", SHARDED_CALL], env=environment,
@@ -149,6 +151,7 @@ def test_a_failed_build_names_the_command_and_leaves_no_file(tmp_path, monkeypat
   assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_a_build_is_cached_under_a_key_of_source_and_cpu(tmp_path, monkeypatch):
   monkeypatch.setenv("SIGNERF_JAX_CACHE", str(tmp_path))
   source = cpu_attention.SOURCE.read_text()

@@ -227,6 +227,7 @@ def run_case(diffusers, checkpoints, inputs, case, seed=0):
   return np.asarray(ours), expected
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", CASES, ids=case_id)
 def test_matches_diffusers(diffusers, checkpoints, inputs, case):
   ours, expected = run_case(diffusers, checkpoints, inputs, case)
@@ -235,6 +236,7 @@ def test_matches_diffusers(diffusers, checkpoints, inputs, case):
   np.testing.assert_allclose(ours, expected, atol=TOLERANCE, rtol=0)
 
 
+@pytest.mark.slow
 def test_new_prompts_seeds_scales_and_images_reuse_the_compiled_sampler(checkpoints, inputs):
   sdxl, channels, kind, steps, options = CASES[0]
   pipeline = load(checkpoints[sdxl], channels, kind)
@@ -252,6 +254,7 @@ def test_new_prompts_seeds_scales_and_images_reuse_the_compiled_sampler(checkpoi
   assert np.abs(np.asarray(changed) - np.asarray(baseline)).max() > 1e-2
 
 
+@pytest.mark.slow
 def test_a_batch_of_two_equals_two_single_calls(checkpoints, inputs):
   sdxl, channels, kind, steps, options = CASES[0]
   pipeline = load(checkpoints[sdxl], channels, kind)
@@ -297,6 +300,7 @@ def copy_pipeline(source, destination, drop=(), edit_index=None):
   return destination
 
 
+@pytest.mark.slow
 def test_base_model_with_a_separate_controlnet(checkpoints, tmp_path):
   """A user's usual layout: an inpainting base model and a ControlNet downloaded apart."""
   source = checkpoints[False]["pipeline"]

@@ -70,6 +70,7 @@ TINY_UNET = dict(block_out_channels=(32, 64), layers_per_block=1, norm_num_group
                  up_block_types=("CrossAttnUpBlock2D",) * 2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("options", [
     {},
     {"mid_block_type": None},

@@ -44,6 +44,7 @@ def test_models_must_fit_an_inpainting_pipeline():
   assert error.value.field == "unet.in_channels"
 
 
+@pytest.mark.slow
 def test_a_two_by_three_sheet_runs_and_memory_does_not_grow_with_the_steps():
   """A 256 x 384 sheet (64 x 96 latents: 6,144 tokens in every self-attention) of 2 x 3 tiles
   with only the bottom-right slot inpainted. The loop carries only latents and solver state, so
@@ -99,6 +100,7 @@ def small_sheet_arguments(height: int, width: int) -> tuple:
           guidance_lib.Guidance(jnp.float32(7.5), jnp.ones((2,), jnp.float32)))
 
 
+@pytest.mark.slow
 def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatch):
   """Without Winograd (the preview's quick-to-compile program) the sampler is its own compiled
   program, with XLA's convolutions where Winograd's matmuls were, and samples the same image to
@@ -121,6 +123,7 @@ def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatc
   assert np.abs(images[True] - np.asarray(image)).mean() > 0.01  # It did generate something.
 
 
+@pytest.mark.slow
 def test_float32_models_sample_without_ynnpack_bfloat16_ones_with_xla_defaults():
   """`sampler.FLOAT32_COMPILER_OPTIONS` reach the float32 models' program: XLA:CPU's defaults
   (bfloat16 models' program, `sample` itself, and so a caller's own jit around it) hand its
@@ -147,6 +150,7 @@ def test_float32_models_sample_without_ynnpack_bfloat16_ones_with_xla_defaults()
                              np.asarray(programs["caller_jit"](*arguments)), atol=1e-4)
 
 
+@pytest.mark.slow
 def test_noise_of_a_sample_depends_only_on_its_key():
   keys = jax.random.split(jax.random.key(3), 3)
   batch = sampler.draw_noise(keys, (4, 6, 4), 5)

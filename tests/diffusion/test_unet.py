@@ -114,6 +114,7 @@ def test_head_counts_follow_diffusers_naming():
   assert config.time_embedding_dim == 128
 
 
+@pytest.mark.slow
 @pytest.mark.parity
 @pytest.mark.parametrize("variant, height, width", [
     ("sd1", 16, 16), ("inpaint", 15, 10), ("sd2", 8, 8), ("sdxl", 8, 8)])

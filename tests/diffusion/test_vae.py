@@ -19,6 +19,7 @@ def nhwc(tensor) -> np.ndarray:
   return tensor.detach().numpy().transpose(0, 2, 3, 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("winograd", [False, True], ids=["direct", "winograd"])
 def test_encode_and_decode_match_diffusers(reference_vae, monkeypatch, winograd):
   """`winograd` lowers the size thresholds so every 3x3 convolution takes that path."""

@@ -19,7 +19,7 @@ def clear_gin():
 
 
 def parsed(*flags: str):
-  argv = ["edit", "--out", "o", *flags]
+  argv = ["edit", "--edit", "o", *flags]
   return cli.build_parser(argv).parse_args(argv)
 
 
@@ -76,3 +76,12 @@ def test_settings_without_a_mask_growth_are_refused():
   with pytest.raises(InputError, match="SelectionConfig.dilation_radius"):
     EditSettings(edit=EditConfig(prompt="a cow"),
                  selection=SelectionConfig(box_min=(0.0,) * 3, box_max=(1.0,) * 3))
+
+
+def test_up_mesh_up_and_heading_bind_the_standing_proxy(clear_gin):
+  configs.parse_gin([], commands.flag_bindings(parsed(
+      "--prompt", "a cow", "--proxy", "primitive:cow", "--on_ground", "1", "2", "3", "--up", "0",
+      "0", "1", "--mesh_up", "0", "0", "1", "--heading", "15")))
+  selection = commands.edit_settings().selection
+  assert (selection.up, selection.mesh_up, selection.heading_degrees) == (
+      (0.0, 0.0, 1.0), (0.0, 0.0, 1.0), 15.0)

@@ -93,7 +93,7 @@ def test_every_missing_user_input_is_named(script, scene):
 def test_the_script_stops_before_writing_anything_without_the_users_inputs(script, tmp_path,
                                                                           capsys):
   out, results = tmp_path / "edit", tmp_path / "results"
-  code = script.main(["--scene", "bear_grizzly", "--out", str(out),
+  code = script.main(["--scene", "bear_grizzly", "--edit", str(out),
                       "--results", str(results), "--model", str(tmp_path)])
   assert code == 2
   assert "set to `%gin.REQUIRED` but not subsequently overridden" in capsys.readouterr().err

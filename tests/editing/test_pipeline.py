@@ -17,6 +17,8 @@ from signerf_jax.editing import commands, stages
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import render, sampling
 
+pytestmark = pytest.mark.slow
+
 REUSED = "reusing its earlier result"  # What a stage that is not run again says.
 
 

@@ -1,12 +1,16 @@
 """`signerf place`'s geometry: the support under a picked pixel from what the NeRF renders along
 the window's rays, and the selection it gives in the dataset's own units."""
 
+import json
+import types
+
 import numpy as np
 import pytest
 
-from signerf_jax import camera
+from signerf_jax import camera, cli
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.editing import place, select
+from signerf_jax.editing.commands import place as place_command
 from signerf_jax.editing.commands.place import view_index
 from signerf_jax.editing.config import SelectionConfig
 from signerf_jax.errors import InputError
@@ -192,3 +196,28 @@ def test_a_proxy_placed_by_a_similarity_has_no_handle():
   with pytest.raises(InputError, match="no ground point") as error:
     place.handle_pose(selection, ground_dataset())
   assert error.value.field == "ground_position"
+
+
+@pytest.mark.parametrize("flags, up, heading", [
+    ((), [0.0, 0.0, 1.0], 0.0),  # The surface's normal.
+    (("--up", "0", "1", "0", "--heading", "30"), [0.0, 1.0, 0.0], 30.0),
+])
+def test_signerf_place_stands_the_proxy_along_up_turned_by_heading(tmp_path, monkeypatch, capsys,
+                                                                    flags, up, heading):
+  dataset = ground_dataset()
+  rays, rendered = rendered_ground(dataset, (21.5, 24.5))
+  found = place.support(dataset, 0, (21.5, 24.5), rays, rendered, size=0.8)
+  monkeypatch.setattr(place_command.evaluate, "load_run", lambda run: types.SimpleNamespace(
+      model=None, variables=None, description={}))
+  monkeypatch.setattr(place_command, "load_recorded_dataset", lambda description, split: dataset)
+  monkeypatch.setattr(place_command.place, "locate", lambda *args, **kwargs: found)
+  edit = tmp_path / "edit"
+  assert cli.main(["place", "--run", str(tmp_path / "run"), "--edit", str(edit), "--view", "0",
+                   "--pixel", "21.5", "24.5", "--proxy", "primitive:box", *flags]) == 0
+  selection = json.loads(capsys.readouterr().out)["selection"]
+  np.testing.assert_allclose(selection["up"], up, atol=1e-4)
+  assert selection["heading_degrees"] == heading
+  assert selection["mesh_up"] == [0.0, 1.0, 0.0]
+  saved = (edit / "config.gin").read_text()
+  assert "SelectionConfig.up = " in saved and "SelectionConfig.heading_degrees = " in saved
+  assert (edit / "placement.png").is_file()

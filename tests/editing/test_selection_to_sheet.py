@@ -75,6 +75,7 @@ def test_box_around_an_object_selects_its_pixels_and_builds_a_sheet(scene_and_vi
   assert np.all(np.stack(slots_mask).reshape(len(visible), -1).max(axis=1) > 0)
 
 
+@pytest.mark.slow
 def test_proxy_on_the_free_spot_is_visible_where_nothing_hides_it(scene_and_views):
   scene, cameras, _, depth, _ = scene_and_views
   proxy = mesh_lib.place_on_ground(primitives.box((1.0, 1.0, 1.0)), scene.free_spot_center,

@@ -12,6 +12,8 @@ from signerf_jax.editing.commands import sweeps
 
 from test_pipeline import bindings
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def swept(tiny_scene, random_model, tmp_path_factory):

@@ -68,6 +68,7 @@ def written(directory):
           for path in sorted(Path(directory).rglob("*.png"))}
 
 
+@pytest.mark.slow
 def test_an_interrupted_update_resumes_to_exactly_the_uninterrupted_images(generator, tmp_path):
   views = make_views()
   complete = run(generator, tmp_path / "complete", views)
@@ -122,6 +123,7 @@ def test_the_update_changes_only_masked_pixels_and_only_the_slot(generator):
   np.testing.assert_allclose(alone[0], edited[1], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_independent_propagation_edits_each_view_without_the_sheet(generator, tmp_path):
   views = make_views(5)
   report = run(generator, tmp_path / "independent", views, propagation="independent")
@@ -187,6 +189,7 @@ SHARDED_UPDATE = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_the_update_sharded_over_two_four_and_eight_devices_equals_the_one_device_update(
     generator, random_model, tmp_path):
   output = tmp_path / "sharded.npz"
@@ -210,6 +213,7 @@ def test_the_update_sharded_over_two_four_and_eight_devices_equals_the_one_devic
                                err_msg=f"{count} devices")
 
 
+@pytest.mark.slow
 def test_a_bfloat16_generator_stores_bfloat16_weights_and_edits_views_alike(
     generator, random_model, monkeypatch, tmp_path):
   """EditConfig.diffusion_precision = "bfloat16": the weights are stored in bfloat16 and the

@@ -19,6 +19,8 @@ import pytest
 
 from signerf_jax import cli, files, ownership
 
+pytestmark = pytest.mark.slow
+
 # Files a user keeps beside the project's: dot-files, names like the project's temporary files
 # (".<stem>.<8 characters>.<suffix>"), folders named like its stages, a frame named like its own.
 USER_FILES = (".env.database", ".profile.original", "notes/deep/.vimrc.template",
@@ -111,11 +113,11 @@ def test_every_command_leaves_the_users_files_as_they_were(tmp_path, random_mode
   for out, why in ((scene, "is the input given as --data"),
                    (scene / "run", "lies inside the input given as --data"),
                    (tmp_path, "holds the input given as --data")):
-    assert why in refused(capsys, "train", "--data", str(scene), "--out", str(out))
-  assert signerf("train", "--data", str(scene), "--out", str(run), "--steps", "3",
+    assert why in refused(capsys, "train", "--data", str(scene), "--run", str(out))
+  assert signerf("train", "--data", str(scene), "--run", str(run), "--steps", "3",
                  "--skip_eval") == 0
   user.add(run)
-  assert signerf("train", "--data", str(scene), "--out", str(run), "--steps", "5") == 0
+  assert signerf("train", "--data", str(scene), "--run", str(run), "--steps", "5") == 0
   assert signerf("eval", "--run", str(run)) == 0
   assert signerf("render", "--run", str(run)) == 0
   assert signerf("render", "--run", str(run), "--out", str(tmp_path / "renders")) == 0
@@ -126,31 +128,31 @@ def test_every_command_leaves_the_users_files_as_they_were(tmp_path, random_mode
   other = tmp_path / "other_scene"
   assert signerf("synthesize", "--out", str(other), "--seed", "3", gin_params=TINY_SCENE) == 0
   assert "this run was trained on other data (the dataset was" in refused(
-      capsys, "train", "--data", str(other), "--out", str(run), "--steps", "8")
-  assert signerf("train", "--data", str(other), "--out", str(run), "--steps", "2",
+      capsys, "train", "--data", str(other), "--run", str(run), "--steps", "8")
+  assert signerf("train", "--data", str(other), "--run", str(run), "--steps", "2",
                  "--start_over", "--skip_eval") == 0
   assert json.loads((run / "model.json").read_text())["fingerprint"]["root"] == str(
       other.resolve())
   assert not (run / "eval.json").exists()  # The earlier run's evaluation went with it.
-  assert signerf("train", "--data", str(scene), "--out", str(run), "--steps", "3",
+  assert signerf("train", "--data", str(scene), "--run", str(run), "--steps", "3",
                  "--start_over", "--skip_eval") == 0
   user.assert_unchanged("a run started over")
 
   # The edit: placed, previewed, edited, redone with other settings, updated, fine-tuned.
   edit = tmp_path / "edit"
   assert "is the input given as --run" in refused(
-      capsys, "place", "--run", str(run), "--out", str(run), "--rectangle", "0", "3", "3", "13",
+      capsys, "place", "--run", str(run), "--edit", str(run), "--rectangle", "0", "3", "3", "13",
       "13", "--rectangle", "2", "3", "3", "13", "13")
-  assert signerf("place", "--run", str(run), "--out", str(edit), "--rectangle", "0", "3", "3",
+  assert signerf("place", "--run", str(run), "--edit", str(edit), "--rectangle", "0", "3", "3",
                  "13", "13", "--rectangle", "2", "3", "3", "13", "13") == 0
   user.add(edit)
   model = ("--model", str(random_model), "--prompt", "a red cow")
-  assert signerf("preview", "--out", str(edit), *model, gin_params=TINY_EDIT) == 0
-  assert signerf("edit", "--out", str(edit), gin_params=TINY_EDIT) == 0
+  assert signerf("preview", "--edit", str(edit), *model, gin_params=TINY_EDIT) == 0
+  assert signerf("edit", "--edit", str(edit), gin_params=TINY_EDIT) == 0
   user.add(edit / "dataset")
-  assert signerf("edit", "--out", str(edit), "--seed", "5", gin_params=TINY_EDIT) == 0
-  assert signerf("update", "--out", str(edit), "--redo", "reference", gin_params=TINY_EDIT) == 0
-  assert signerf("finetune", "--out", str(edit), gin_params=TINY_EDIT) == 0
+  assert signerf("edit", "--edit", str(edit), "--seed", "5", gin_params=TINY_EDIT) == 0
+  assert signerf("update", "--edit", str(edit), "--redo", "reference", gin_params=TINY_EDIT) == 0
+  assert signerf("finetune", "--edit", str(edit), gin_params=TINY_EDIT) == 0
   assert signerf("eval", "--edit", str(edit)) == 0
   user.assert_unchanged("the edit commands")
   assert (edit / "evaluation" / "metrics.json").is_file()
@@ -172,7 +174,7 @@ def test_two_trainings_into_one_run_give_one_clear_error_and_an_intact_run(tmp_p
   assert signerf("synthesize", "--out", str(scene), gin_params=TINY_SCENE) == 0
   run = tmp_path / "run"
   first = subprocess.Popen(
-      [sys.executable, "-m", "signerf_jax.cli", "train", "--data", str(scene), "--out",
+      [sys.executable, "-m", "signerf_jax.cli", "train", "--data", str(scene), "--run",
        str(run), "--steps", "400", "--skip_eval"], stdout=subprocess.PIPE,
       stderr=subprocess.PIPE, text=True)
   lock = run / ownership.MARKER_FOLDER / ownership.LOCK_FILE
@@ -181,7 +183,7 @@ def test_two_trainings_into_one_run_give_one_clear_error_and_an_intact_run(tmp_p
     assert first.poll() is None and time.monotonic() < deadline, first.stderr.read()
     time.sleep(0.2)
   try:
-    message = refused(capsys, "train", "--data", str(scene), "--out", str(run), "--steps", "2")
+    message = refused(capsys, "train", "--data", str(scene), "--run", str(run), "--steps", "2")
     assert f"in use by another signerf process (pid {first.pid})" in message
   finally:
     _, stderr = first.communicate(timeout=600)

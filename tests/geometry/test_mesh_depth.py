@@ -67,6 +67,7 @@ def assert_matches_trimesh(mesh, cameras, **render_options):
   return result
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("proxy", [
     primitives.box((1.0, 0.6, 0.8)),
     primitives.sphere(0.5, subdivisions=2),
@@ -83,6 +84,7 @@ def test_primitives_match_trimesh_ray_casting(proxy, distortion, fisheye):
   assert_matches_trimesh(proxy, cameras)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("distortion", [None, (-0.2, 0.05, 0.002, -0.001)],
                          ids=["pinhole", "distorted"])
 def test_the_sizing_wrapper_undistorts_exactly_where_the_cameras_need_it(distortion):
@@ -102,6 +104,7 @@ def test_the_sizing_wrapper_undistorts_exactly_where_the_cameras_need_it(distort
                                   np.asarray(with_undistortion.z_depth))
 
 
+@pytest.mark.slow
 def test_fisheye_rays_past_90_degrees_hit_nothing_and_the_others_match_trimesh():
   """A 250-degree fisheye inside a box: the walls in front are exact, the rays behind the
   camera plane (no positive z-depth) are misses."""
@@ -121,6 +124,7 @@ def test_fisheye_rays_past_90_degrees_hit_nothing_and_the_others_match_trimesh()
                              rtol=1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tile_size", [3, 8])
 def test_tile_size_and_odd_image_sizes_do_not_change_the_result(tile_size):
   proxy = primitives.sphere(0.5, subdivisions=1)
@@ -133,6 +137,7 @@ def test_tile_size_and_odd_image_sizes_do_not_change_the_result(tile_size):
   np.testing.assert_allclose(result.z_depth, reference.z_depth, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_camera_inside_a_box_sees_the_walls_around_it():
   # Most triangles straddle the camera plane: their projection is unbounded.
   proxy = primitives.box((2.0, 3.0, 2.5))
@@ -169,6 +174,7 @@ def test_analytic_sphere_depth():
     assert not np.isfinite(distance[discriminant < 0]).any()
 
 
+@pytest.mark.slow
 def test_overflow_is_reported_and_avoided():
   proxy = primitives.sphere(0.5, subdivisions=2)
   cameras = orbit_cameras(np.zeros(3), 2.0)
@@ -178,6 +184,7 @@ def test_overflow_is_reported_and_avoided():
   assert not np.asarray(mesh_depth.render_mesh_depth(proxy, cameras).overflow).any()
 
 
+@pytest.mark.slow
 def test_no_recompilation_for_new_cameras_of_the_same_shape():
   proxy = primitives.box((1.0, 1.0, 1.0))
   first = orbit_cameras(np.zeros(3), 3.0)
@@ -188,6 +195,7 @@ def test_no_recompilation_for_new_cameras_of_the_same_shape():
   assert mesh_depth.mesh_depth._cache_size() == size
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 @pytest.mark.parametrize("name", SHARED_MESHES)
 def test_shared_meshes_match_trimesh_ray_casting(shared_data, name):

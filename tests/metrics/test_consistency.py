@@ -77,6 +77,7 @@ def reports(image_sets, matcher):
           for name in ("original", "consistent", "independent")}
 
 
+@pytest.mark.slow
 def test_original_views_have_many_verified_correspondences(image_sets, reports, matcher):
   assert image_sets["masks"].mean() > 0.1
   summary = reports["original"].summary()
@@ -92,18 +93,21 @@ def test_original_views_have_many_verified_correspondences(image_sets, reports, 
   assert summary["mean_epipolar_inliers"] >= 0.85 * summary["mean_matches"]
 
 
+@pytest.mark.slow
 def test_independent_edits_lose_most_correspondences(reports, matcher):
   change = consistency.relative_change(reports["independent"], reports["original"])
   assert change["mean_fundamental_inliers"] <= INDEPENDENT_LOSS[matcher]
   assert change["mean_epipolar_inliers"] <= INDEPENDENT_LOSS[matcher]
 
 
+@pytest.mark.slow
 def test_consistent_edit_keeps_most_correspondences(reports):
   change = consistency.relative_change(reports["consistent"], reports["original"])
   assert change["mean_fundamental_inliers"] >= -0.25
   assert change["mean_epipolar_inliers"] >= -0.25
 
 
+@pytest.mark.slow
 def test_deterministic_and_json_ready(image_sets, reports, matcher):
   again = consistency.image_set_consistency(image_sets["original"], image_sets["cameras"],
                                             image_sets["masks"],

@@ -101,6 +101,7 @@ def test_distances_match_reference(reference, params):
   assert ours[-1] < 1e-10  # Identical images.
 
 
+@pytest.mark.slow
 def test_gradients_match_reference_and_are_finite(reference, params):
   images, references = image_pairs(1)
   torch_images = torch.from_numpy(images.transpose(0, 3, 1, 2)).requires_grad_()

@@ -107,6 +107,7 @@ def test_rendering_takes_its_fraction_of_the_field_samples_and_training_all():
   assert capacity.Capacity.from_json(older).render_sample_fraction == 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.shared_data
 def test_capacity_of_the_benchmark_scenes(shared_data):
   from signerf_jax.data import load_dataset  # pylint: disable=g-import-not-at-top

@@ -120,6 +120,7 @@ def region_hits(cameras, index):
   return np.asarray(hit)
 
 
+@pytest.mark.slow
 def test_only_the_region_changes_and_the_original_stays_frozen(sphere, edited):
   model, original_variables, trainer = edited
   cameras = sphere.cameras.take([0, 4])
@@ -140,6 +141,7 @@ def test_only_the_region_changes_and_the_original_stays_frozen(sphere, edited):
     np.testing.assert_array_equal(kept, given)
 
 
+@pytest.mark.slow
 def test_training_an_edit_region_compiles_once(sphere, edited):
   _, _, trainer = edited
   trainer.run(until_step=trainer.step + 5, progress=False)
@@ -149,6 +151,7 @@ def test_training_an_edit_region_compiles_once(sphere, edited):
   assert np.isfinite(trainer.last_statistics["loss"])
 
 
+@pytest.mark.slow
 def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
   model, original_variables, trainer = edited
   training_run.write_model_file(tmp_path, trainer.model, sphere)
@@ -166,6 +169,7 @@ def test_an_edit_region_run_saves_and_loads_back(sphere, edited, tmp_path):
     training_run.read_model_file(tmp_path)
 
 
+@pytest.mark.slow
 def test_a_diffuse_edit_region_colours_alike_from_every_direction(sphere, tmp_path):
   model = dataclasses.replace(small_model(sphere), edit_region=REGION,
                               region_view_dependence=False)
@@ -188,6 +192,7 @@ def test_a_diffuse_edit_region_colours_alike_from_every_direction(sphere, tmp_pa
     training_run.read_model_file(tmp_path)
 
 
+@pytest.mark.slow
 def test_the_proposal_sampler_keeps_rays_missing_the_region_too(sphere):
   region_model, region_variables = proposal_region_model(sphere)
   cameras = sphere.cameras.take([1])
@@ -211,6 +216,7 @@ def proposal_region_model(sphere):
                  "original": nerf_model.init_variables(model.original, jax.random.PRNGKey(0))}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sampler", ["occupancy", "proposal"])
 def test_precomputed_surroundings_render_as_the_merged_fields(sphere, edited, sampler):
   """Training renders the trained field between the original's precomputed render in front of
@@ -243,6 +249,7 @@ def test_precomputed_surroundings_render_as_the_merged_fields(sphere, edited, sa
     np.testing.assert_allclose(split[name], merged[name], atol=2e-5, err_msg=name)
 
 
+@pytest.mark.slow
 def test_an_edit_region_trains_only_on_the_pixels_whose_rays_cross_it(sphere, edited):
   model, variables = edited[2].model, edited[2].state.variables
   weights = np.ones(sphere.images.shape[:3], np.float32)
@@ -258,6 +265,7 @@ def test_an_edit_region_trains_only_on_the_pixels_whose_rays_cross_it(sphere, ed
   assert surroundings.t_in.shape == (512,)
 
 
+@pytest.mark.slow
 def test_an_edit_region_no_training_pixel_sees_is_an_error(sphere, edited):
   model = dataclasses.replace(edited[2].model, edit_region=((2.0, 2.0, 2.0), (2.5, 2.5, 2.5)))
   with pytest.raises(InputError, match="no training pixel sees the edit region"):
@@ -265,6 +273,7 @@ def test_an_edit_region_no_training_pixel_sees_is_an_error(sphere, edited):
                            edited[2].state.variables)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("entropy_weight", [0.0, 0.05])
 def test_fine_tuning_an_edit_region_learns_it_with_or_without_the_opacity_prior(
     sphere, edited, tmp_path, entropy_weight):

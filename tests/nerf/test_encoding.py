@@ -94,6 +94,7 @@ def test_coarse_to_fine_weights_unlock_levels_in_order():
   np.testing.assert_array_equal(encoding.level_weights_at(5, 0.0, 0.0), np.ones(5))
 
 
+@pytest.mark.slow
 def test_a_switched_off_level_has_no_features_and_no_gradient():
   layout = encoding.grid_layout(3, 4, 16, 10, 2)
   table = jax.random.normal(jax.random.PRNGKey(0), (layout.num_rows, 2))

@@ -19,15 +19,16 @@ def scene_dir(sphere, tmp_path_factory):
   return directory
 
 
+@pytest.mark.slow
 def test_train_resume_eval_and_render(scene_dir, tmp_path, capsys):
   run = tmp_path / "run"
-  assert cli.main(["train", "--data", str(scene_dir), "--out", str(run), "--steps", "6",
+  assert cli.main(["train", "--data", str(scene_dir), "--run", str(run), "--steps", "6",
                    *GIN_PARAMS]) == 0
   assert "6 steps" in capsys.readouterr().out
   config = (run / "config.gin").read_text()
   assert "CapacityRules.samples_per_batch = 4096" in config and "TrainConfig" in config
   # Resuming with more steps continues from the checkpoint with the run's own configuration.
-  assert cli.main(["train", "--data", str(scene_dir), "--out", str(run), "--steps", "9"]) == 0
+  assert cli.main(["train", "--data", str(scene_dir), "--run", str(run), "--steps", "9"]) == 0
   assert "9 steps" in capsys.readouterr().out
 
   assert cli.main(["eval", "--run", str(run)]) == 0

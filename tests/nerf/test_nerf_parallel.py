@@ -81,6 +81,7 @@ MULTI_DEVICE_TRAINING = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_two_four_and_eight_devices_train_like_one(tmp_path):
   output = tmp_path / "runs.npz"
   environment = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES=str(max(DEVICE_COUNTS)))
@@ -109,6 +110,7 @@ def test_two_four_and_eight_devices_train_like_one(tmp_path):
   assert str(runs["odd_batch_field"]) == "Capacity.rays_per_batch"
 
 
+@pytest.mark.slow
 def test_a_sample_group_renders_the_same_whatever_the_other_groups_hold(sphere):
   """Rays [B, A] and [B', A] with two groups: A renders the same (with a budget tight enough to
   drop rays); with one budget for the batch, B's samples crowd all of A's out."""
@@ -137,6 +139,7 @@ def test_a_sample_group_renders_the_same_whatever_the_other_groups_hold(sphere):
   assert not np.any(second_half_renderer(1)(batches[1])["ray_complete"])
 
 
+@pytest.mark.slow
 def test_a_resumed_run_is_placed_on_the_mesh_and_compiles_nothing(sphere, tmp_path):
   model = small_model(sphere)
   config = dataclasses.replace(CONFIG, steps=3)

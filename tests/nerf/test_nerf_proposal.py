@@ -12,6 +12,7 @@ from signerf_jax import camera
 from signerf_jax.nerf import capacity, evaluate, model as nerf_model, scene_info, training_run
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["unbounded", "forward_facing"])
 def test_proposal_sampler_trains_without_recompiling(sphere, kind):
   # Forward-facing: the five ring cameras within 45 degrees of the first one's direction.

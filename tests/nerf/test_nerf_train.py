@@ -34,6 +34,7 @@ def test_training_raises_psnr_and_learns_depth(sphere, trained):
   assert np.mean(renders["accumulation"][background]) < 0.2
 
 
+@pytest.mark.slow
 def test_second_training_step_and_second_render_compile_nothing(sphere, trained):
   trainer, _ = trained
   trainer.run(until_step=trainer.step + 1, progress=False)  # an occupancy update is due here or
@@ -48,6 +49,7 @@ def test_second_training_step_and_second_render_compile_nothing(sphere, trained)
   assert compiled == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sampler", ["occupancy", "proposal"])
 def test_fresh_variables_are_one_compiled_program(sphere, sampler):
   # Eagerly, each of the initialisers' small operations compiled on its own (83-93 programs
@@ -106,6 +108,7 @@ def test_interrupted_run_keeps_its_last_checkpoint(sphere, tmp_path):
   assert not list(tmp_path.glob(".checkpoint*"))  # no temporary file left behind
 
 
+@pytest.mark.slow
 def test_fine_tuning_starts_from_given_variables_and_honours_pixel_weights(sphere, trained,
                                                                            tmp_path):
   trainer, _ = trained
@@ -141,6 +144,7 @@ def test_learning_rate_warms_up_then_decays_with_progress():
   assert rate(500, 7.0) == pytest.approx(1e-4, rel=1e-5)  # clamped past the end
 
 
+@pytest.mark.slow
 def test_a_time_budget_is_what_the_schedule_spans(sphere):
   """With max_seconds, progress is the larger of the steps and the seconds fractions, so a run
   stopped by its time budget ends annealed although it did few of its steps."""
@@ -199,6 +203,7 @@ def test_selection_weight_is_the_opacity_inside_the_box(sphere, trained):
   assert np.mean(half[0][misses]) < 0.1
 
 
+@pytest.mark.slow
 def test_a_sparse_capture_trains_and_renders_each_pixel_as_the_mean_of_four_rays(sphere):
   """Eight views: the derived model fits each photo's pixel with the mean of 2 x 2 rays inside
   it, learns the sphere that way, and renders (and is evaluated) 2 x 2 rays a pixel."""
@@ -221,6 +226,7 @@ def test_a_sparse_capture_trains_and_renders_each_pixel_as_the_mean_of_four_rays
   assert not compiled
 
 
+@pytest.mark.slow
 def test_the_opacity_prior_is_part_of_the_training_loss_when_weighted(sphere):
   model = small_model(sphere)
   config = dataclasses.replace(SMALL_CONFIG, opacity_entropy_weight=0.5)

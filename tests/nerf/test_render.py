@@ -63,6 +63,7 @@ def _rays(origins, directions) -> camera.Rays:
                      np.ones(count, np.float32), np.zeros(count, np.int32))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("occupied_cells", ["off_centre_block", "block_and_speck", "everything",
                                             "nothing"])
 def test_marching_only_through_the_occupied_box_renders_as_the_whole_march(sphere,
@@ -120,6 +121,7 @@ def test_marching_only_through_the_occupied_box_renders_as_the_whole_march(spher
   assert not compiled
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pixels", ["off_centre_patch", "one_view_empty", "single_pixel",
                                     "everything", "nothing"])
 def test_rendering_some_pixels_gives_those_pixels_of_the_whole_render_and_zeros_elsewhere(
@@ -217,6 +219,7 @@ def test_a_chunk_holds_no_more_than_the_rays_or_the_default_chunk(sphere, monkey
   assert outputs["rgb"].shape == (count, 3)
 
 
+@pytest.mark.slow
 def test_a_huge_chunk_size_renders_as_the_default_one(sphere):
   model = small_model(sphere)
   variables = nerf_model.init_variables(model, jax.random.PRNGKey(0))
@@ -257,6 +260,7 @@ def test_a_chunk_size_whose_buffers_cannot_fit_in_memory_is_refused():
     render.check_chunk_size(render.physical_memory() // render.CHUNK_BYTES_PER_RAY + 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", [["eval"], ["render"]])
 def test_the_commands_refuse_a_huge_chunk_size_before_loading_anything(command, tmp_path):
   # A missing run: the chunk size is refused first, in seconds, without allocating its buffers

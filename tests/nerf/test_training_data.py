@@ -12,6 +12,8 @@ from signerf_jax.nerf import training_data
 
 from small_nerf import small_model
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.parametrize("per_side", [1, 2, 3])
 def test_each_pixels_rays_cross_that_pixel_and_share_its_target_and_background(sphere, per_side):

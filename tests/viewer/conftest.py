@@ -26,7 +26,7 @@ def viewed_run(tmp_path_factory):
       directory / "scene", seed=2,
       settings=synthetic.SceneSettings(num_primitives=2, num_meshes=0),
       rig=synthetic_render.CameraRig(num_views=12, image_size=40, field_of_view_degrees=40.0))
-  assert cli.main(["train", "--data", str(directory / "scene"), "--out", str(directory / "run"),
+  assert cli.main(["train", "--data", str(directory / "scene"), "--run", str(directory / "run"),
                    "--steps", "200", "--gin_param",
                    "CapacityRules.samples_per_batch = 16384"]) == 0
   return directory / "run", files.read_json(directory / "scene" / "scene.json")

@@ -16,6 +16,8 @@ from signerf_jax.editing.commands import parse_edit_config
 from signerf_jax.editing.config import SelectionConfig
 from signerf_jax.viewer import app
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def edit_copy(viewed_edit, tmp_path_factory):

@@ -25,10 +25,10 @@ from signerf_jax.viewer import access, app
 from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
 
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
-pytestmark = pytest.mark.skipif(
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(
     CHROMIUM is None or CHROMEDRIVER is None,
     reason="no headless Chromium: install Debian's chromium and chromium-driver packages "
-    "(README, 'The viewer')")
+    "(README, 'The viewer')")]
 WINDOW = (1000, 700)
 
 

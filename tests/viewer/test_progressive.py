@@ -16,6 +16,8 @@ from signerf_jax.viewer.cameras import ViewPose, cameras_for_pose
 
 from small_nerf import count_compilations
 
+pytestmark = pytest.mark.slow
+
 
 
 @pytest.fixture(scope="module")

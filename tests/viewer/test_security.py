@@ -68,6 +68,7 @@ def get(url: str):
     return error.code, error.headers, error.read()
 
 
+@pytest.mark.slow
 def test_a_websocket_from_another_sites_page_is_refused(viewer):
   # Even with the token (which another site's page cannot know): the page is not the viewer's.
   for origin in ("http://evil.example", f"http://evil.example:{viewer.server.get_port()}",
@@ -80,6 +81,7 @@ def test_a_websocket_from_another_sites_page_is_refused(viewer):
   assert "Host" in refusal(viewer, rebound, f"?token={viewer.token}", host_name="evil.example")
 
 
+@pytest.mark.slow
 def test_a_websocket_without_the_token_is_refused(viewer):
   assert "no token" in refusal(viewer, own_origin(viewer))
   assert "wrong token" in refusal(viewer, own_origin(viewer), "?token=guessed")
@@ -90,6 +92,7 @@ def test_a_websocket_without_the_token_is_refused(viewer):
   assert "no token" in refusal(viewer, own_origin(viewer), cookie=other)
 
 
+@pytest.mark.slow
 def test_the_viewers_own_page_with_its_token_connects(viewer):
   # As the page does: its cookie (the page opens the websocket without the query string) ...
   assert open_websocket(viewer, own_origin(viewer), cookie=token_cookie(viewer))
@@ -98,6 +101,7 @@ def test_the_viewers_own_page_with_its_token_connects(viewer):
   assert open_websocket(viewer, own_origin(viewer, "localhost"), cookie=token_cookie(viewer))
 
 
+@pytest.mark.slow
 def test_the_page_asks_for_the_token_and_sets_its_cookie(viewer):
   page = f"{own_origin(viewer)}/"
   status, _, body = get(page)
@@ -110,6 +114,7 @@ def test_the_page_asks_for_the_token_and_sets_its_cookie(viewer):
   assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
 
 
+@pytest.mark.slow
 def test_the_printed_address_carries_the_token(viewed_run, viewed_edit, monkeypatch, capsys):
   seen = {}
 
@@ -128,6 +133,7 @@ def test_the_printed_address_carries_the_token(viewed_run, viewed_edit, monkeypa
   assert (seen["with"], seen["without"]) == (200, 403)
 
 
+@pytest.mark.slow
 def test_each_viewer_draws_its_own_token(viewer):
   assert viewer.token != access.new_token()
   assert viewer.url == f"{own_origin(viewer)}/?token={viewer.token}"

@@ -5,13 +5,14 @@ editing code: `edit_settings` builds the `EditSettings` every stage reads from t
 
 The flags describing the edit (--data, --prompt, --box / --proxy, --model, ...) are shorthand for
 gin bindings of `editing.config` and are needed only when the edit directory is created: they
-are saved in OUT/config.gin, which every later command reads first (flags given again override
-it, and every stage whose settings changed runs again).
+are saved in EDIT/config.gin, which every later command reads first (flags given again override
+it, and every stage whose settings changed runs again). A command offers only the flags its
+stages read (`UNREAD_FLAGS`).
 
-    signerf preview --out edits/cow --data scenes/field --prompt "a red cow" \\
+    signerf preview --edit edits/cow --data scenes/field --prompt "a red cow" \\
         --proxy cow.obj --on_ground 0.1 -0.3 0 --size 0.5      # candidate sheets, seeds 0-3
-    signerf preview --out edits/cow --reroll 2/1,4@7            # sheet 2, tiles 1 and 4 again
-    signerf edit --out edits/cow --sheet 2/1,4@7                 # the rest, with that sheet
+    signerf preview --edit edits/cow --reroll 2/1,4@7           # sheet 2, tiles 1 and 4 again
+    signerf edit --edit edits/cow --sheet 2/1,4@7                # the rest, with that sheet
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Callable
 
 import gin
 
-from signerf_jax import configs
+from signerf_jax import cli, configs
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.editing import generation, stages
@@ -47,6 +48,29 @@ from signerf_jax.validation import argument_type
 LAST_STAGE = {"edit": "evaluate", "preview": "preview", "update": "dataset",
               "finetune": "finetune", "eval": "evaluate", "demo": "evaluate"}
 
+# The pipeline's stages in order (`stages.runner.pipeline_stages`, named here so that --help
+# need not build settings; tests/test_cli_flags.py keeps the two equal), and those
+# --second_iteration adds before "evaluate".
+STAGES = ("original", "select", "reference", "preview", "sheet", "views", "update", "dataset",
+          "finetune", "evaluate")
+SECOND_ITERATION_STAGES = ("reference_2", "sheet_2", "update_2", "dataset_2", "finetune_2")
+
+# command -> the flags of `add_edit_arguments` its stages never read, which it does not offer
+# (given to a later command, they are saved in EDIT/config.gin as any flag is).
+UNREAD_FLAGS = {
+    "preview": ("seed", "sheet", "nerf_update", "second_iteration", "lpips", "clip",
+                "views_per_device"),
+    "update": ("nerf_update", "second_iteration", "lpips", "clip"),
+    "finetune": ("second_iteration", "clip"),
+    "edit": (),
+}
+
+# The placement flags, one meaning in every command (`signerf place` too).
+UP_HELP = ("the scene's up direction in the dataset's own units, which the proxy stands along "
+           "and --heading turns it about")
+MESH_UP_HELP = "the proxy's own up direction, stood along --up"
+HEADING_HELP = "turn of the proxy about --up, in degrees"
+
 
 def gin_value(value) -> str:
   """A Python value as a gin literal (strings, numbers, booleans, tuples)."""
@@ -55,65 +79,131 @@ def gin_value(value) -> str:
   return repr(value)
 
 
-def add_edit_arguments(parser: argparse.ArgumentParser) -> None:
-  """The flags shared by edit, preview, update and finetune."""
-  parser.add_argument("--out", required=True, help="the edit directory (created or resumed)")
-  data = parser.add_argument_group("inputs (saved in OUT/config.gin)")
-  data.add_argument("--data", help="dataset directory (nerfstudio, Blender, LLFF)")
+def command_stages(command: str) -> tuple[str, ...]:
+  """The stages `command` runs (some or all of them), in order; `edit`'s include
+  SECOND_ITERATION_STAGES."""
+  if command in ("edit", "eval", "demo"):
+    return STAGES[:-1] + SECOND_ITERATION_STAGES + STAGES[-1:]
+  return STAGES[:STAGES.index(LAST_STAGE[command]) + 1]
+
+
+def redo_help(command: str) -> str:
+  """--redo's help: the stages `command` runs, by name."""
+  names = [name for name in command_stages(command) if name not in SECOND_ITERATION_STAGES]
+  second = [name for name in command_stages(command) if name in SECOND_ITERATION_STAGES]
+  return ("run this stage (and every stage after it) again; repeatable. Stages: "
+          + ", ".join(names)
+          + (f" (with --second_iteration also {', '.join(second)} before evaluate)"
+             if second else ""))
+
+
+def add_edit_arguments(parser: argparse.ArgumentParser, command: str | None = None) -> None:
+  """The flags shared by edit, preview, update and finetune (`command`, by default the one
+  `parser` is named after): the ones its stages read (`UNREAD_FLAGS`)."""
+  if command is None:
+    command = parser.prog.rsplit(" ", 1)[-1]
+  command = command if command in UNREAD_FLAGS else "edit"
+  unread = set(UNREAD_FLAGS[command])
+
+  def offer(group, flag: str, **kwargs) -> None:
+    if flag[2:] not in unread:
+      group.add_argument(flag, **kwargs)
+
+  cli.add_output_argument(parser, "--edit", deprecated=("--out",), required=True,
+                          help="the edit directory: new or empty (created), or an edit signerf "
+                          "wrote (resumed; its config.gin is read first)")
+  _add_inputs(parser.add_argument_group(
+      "inputs (saved in EDIT/config.gin; left out, the saved value holds, else the default)"),
+      offer)
+  _add_selection(parser.add_argument_group(
+      "selection (saved as the inputs are; in the dataset's own world units unless "
+      "SelectionConfig.frame)"))
+  _add_how(parser.add_argument_group("how"), offer, command)
+  add_common_arguments(parser)
+
+
+def _add_inputs(data, offer) -> None:
+  """The edit's inputs: the dataset, its NeRF, the prompts, the diffusion model."""
+  data.add_argument("--data", help=cli.DATA_HELP + "; default: the dataset --run was trained on")
   data.add_argument("--downscale", type=argument_type(EditConfig, "downscale"),
-                    help="integer image downscale of the dataset")
+                    help="integer image downscale of the dataset (default: "
+                    f"{EditConfig.downscale})")
   data.add_argument("--run", help="an already trained NeRF of the dataset (`signerf train`); "
-                    "without it the edit trains one")
+                    "default: the edit trains one in EDIT/original/")
   data.add_argument("--prompt", help="what the edited region should show")
-  data.add_argument("--negative_prompt", help="what it should not show")
-  data.add_argument("--seed", type=argument_type(EditConfig, "seed"),
-                    help="seed of the image set update (and default sheet)")
+  data.add_argument("--negative_prompt", help="what it should not show (default: nothing)")
+  offer(data, "--seed", type=argument_type(EditConfig, "seed"),
+        help=f"seed of the image set update and the default sheet (default: {EditConfig.seed})")
   data.add_argument("--model", help="diffusers ControlNet inpainting pipeline directory, e.g. "
                     "SD 1.5 inpainting (default: the shipped model)")
   data.add_argument("--controlnet", help="diffusers ControlNet directory (depth or inpaint), "
-                    "replacing the pipeline's")
+                    "replacing the pipeline's (default: the pipeline's own)")
   data.add_argument("--scheduler", choices=typing.get_args(SchedulerOverride)[1:],
-                    help="override the checkpoint's scheduler")
-  where = parser.add_argument_group(
-      "selection (the dataset's own world units unless SelectionConfig.frame)")
+                    help="override the checkpoint's scheduler (default: the checkpoint's)")
+
+
+def _add_selection(where) -> None:
+  """Where to edit: a box, or a proxy placed by a similarity transform or standing on the
+  ground (--up, --mesh_up and --heading mean what `signerf place`'s do)."""
   where.add_argument("--box", type=argument_type(float), nargs=6,
                      metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                      help="shape selection: axis-aligned box min and max corners")
   where.add_argument("--proxy", help="proxy selection: a mesh file or primitive:<box, sphere, "
                      "cylinder, capsule, cow>")
   where.add_argument("--scale", type=argument_type(SelectionConfig, "scale"),
-                     help="proxy similarity transform: scale")
+                     help="proxy similarity transform: scale (default: "
+                     f"{SelectionConfig.scale})")
   where.add_argument("--rotation", type=argument_type(float), nargs=3, metavar=("RX", "RY", "RZ"),
-                     help="proxy similarity transform: Euler angles in degrees (x, y, z)")
+                     help="proxy similarity transform: Euler angles in degrees (x, y, z; "
+                     "default: 0 0 0)")
   where.add_argument("--translation", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
-                     help="proxy similarity transform: translation")
+                     help="proxy similarity transform: translation (default: 0 0 0)")
   where.add_argument("--on_ground", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
-                     help="instead stand the proxy upright with its footprint centred here")
+                     help="instead stand the proxy upright with its footprint centred here, as "
+                     "`signerf place` does")
   where.add_argument("--size", type=argument_type(SelectionConfig, "ground_size"),
-                     help="with --on_ground: the proxy's largest side")
+                     help="standing proxy: its largest side (default: "
+                     f"{SelectionConfig.ground_size})")
   where.add_argument("--heading", type=argument_type(float),
-                     help="with --on_ground: turn about up (degrees)")
+                     help=f"standing proxy: {HEADING_HELP} (default: "
+                     f"{SelectionConfig.heading_degrees})")
   where.add_argument("--up", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
-                     help="the up direction (default: the cameras' mean up)")
-  how = parser.add_argument_group("how")
-  how.add_argument("--sheet", help="the sheet recipe to propagate: SEED or SEED/TILE,TILE@SEED")
-  how.add_argument("--nerf_update", choices=typing.get_args(NerfUpdate),
-                   help="fine-tune the original NeRF or retrain (auto: retrain for proxies)")
-  how.add_argument("--second_iteration", action="store_true", default=None,
-                   help="run steps 4-7 once more from the edited NeRF")
+                     help=f"standing proxy: {UP_HELP} (default: the one `signerf place` "
+                     "saved, else the cameras' mean up)")
+  where.add_argument("--mesh_up", type=argument_type(float), nargs=3, metavar=("X", "Y", "Z"),
+                     help=f"standing proxy: {MESH_UP_HELP} (default: "
+                     f"{' '.join(f'{value:g}' for value in SelectionConfig.mesh_up)}, +y as the "
+                     "shared meshes)")
+
+
+def _add_how(how, offer, command: str) -> None:
+  """How the edit runs: the sheet, the NeRF update, its checks, budgets and redone stages."""
+  offer(how, "--sheet", help="the sheet recipe to propagate: SEED or SEED/TILE,TILE@SEED "
+        "(`signerf preview` shows candidates; default: the --seed sheet)")
+  offer(how, "--nerf_update", choices=typing.get_args(NerfUpdate),
+        help="fine-tune the original NeRF or retrain it (default: auto: retrain for proxies, "
+        "fine-tune for boxes)")
+  offer(how, "--second_iteration", action="store_true", default=None,
+        help="run steps 4-7 once more from the edited NeRF")
   how.add_argument("--strict", action="store_true", default=None,
                    help="a prompt word the model does not know is an error, not a warning")
-  how.add_argument("--lpips", help="VGG-LPIPS weights (safetensors) for the fine-tuning loss")
-  how.add_argument("--clip", help="CLIP checkpoint directory for the directional similarity")
-  how.add_argument("--views_per_device", type=argument_type(UpdateConfig, "views_per_device"),
-                   help="views inpainted per device at once")
+  offer(how, "--lpips", help="VGG-LPIPS weights (safetensors) for the fine-tuning loss "
+        "(default: none, L1 only)")
+  offer(how, "--clip", help="CLIP checkpoint directory for the directional similarity "
+        "(default: none, not measured)")
+  offer(how, "--views_per_device", type=argument_type(UpdateConfig, "views_per_device"),
+        help="views inpainted per device at once (default: "
+        f"{UpdateConfig.views_per_device})")
+  trainings = ("the original NeRF's training, when the edit trains it (no --run; saved for the "
+               "later NeRF update too)" if command in ("preview", "update") else
+               "each NeRF training of the edit (the original when the edit trains it, the "
+               "fine-tune or retrain)")
   how.add_argument("--max_seconds", type=argument_type(TrainConfig, "max_seconds"),
-                   help="time budget of each NeRF training of the edit (the original when the "
-                   "edit trains it, the fine-tune or retrain): it stops there, its learning-rate "
-                   "schedule spanning the budget; per run: <run>/TrainConfig.max_seconds")
+                   help=f"time budget in seconds of {trainings}: it stops there, its "
+                   "learning-rate schedule spanning the budget (default: none, TrainConfig.steps "
+                   "steps); per run: <run>/TrainConfig.max_seconds")
   how.add_argument("--redo", action="append", default=[], metavar="STAGE",
-                   help="run this stage (and those after it) again; repeatable")
-  add_common_arguments(parser)
+                   help=redo_help(command))
 
 
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
@@ -148,6 +238,7 @@ _FLAG_BINDINGS = {
     "size": ("SelectionConfig.ground_size", None),
     "heading": ("SelectionConfig.heading_degrees", None),
     "up": ("SelectionConfig.up", None),
+    "mesh_up": ("SelectionConfig.mesh_up", None),
     "lpips": ("FinetuneConfig.lpips_weights", _absolute_path),
     "clip": ("EvaluationConfig.clip_model", _absolute_path),
     "views_per_device": ("UpdateConfig.views_per_device", None),
@@ -208,7 +299,8 @@ def run_command(name: str, directory: str | Path, redo=(), progress: bool = True
   """Runs the pipeline up to the command's stage with the current gin bindings (saved as
   `directory`/config.gin first, which later commands read back). Each stage's progress lines go
   to `log`; by default, prefixed `signerf NAME`, to stderr as the progress bars do: stdout holds
-  only the command's result (for `signerf eval --edit`, one JSON line)."""
+  only the command's result (for `signerf eval --edit`, one JSON line). A refused directory is
+  named by --edit (`ownership.FLAGS`)."""
   settings = edit_settings()
   if log is None:
     log = lambda line: print(f"signerf {name} {line}", file=sys.stderr, flush=True)
@@ -223,9 +315,9 @@ def run_stages(name: str, args: argparse.Namespace, extra_bindings=()
   """Parses the edit's gin (saved config, files, flags, parameters) and runs the command's
   stages. Returns the run and its wall time in seconds."""
   start = time.perf_counter()
-  parse_edit_config(args.out, args.gin_file, flag_bindings(args) + list(extra_bindings)
+  parse_edit_config(args.edit, args.gin_file, flag_bindings(args) + list(extra_bindings)
                     + list(args.gin_param))
-  edit = run_command(name, args.out, args.redo, progress=not args.quiet)
+  edit = run_command(name, args.edit, args.redo, progress=not args.quiet)
   return edit, time.perf_counter() - start
 
 

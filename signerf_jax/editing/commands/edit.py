@@ -10,12 +10,13 @@ from signerf_jax.editing.commands import add_edit_arguments, run_stages
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  add_edit_arguments(parser)
+  add_edit_arguments(parser)  # The flags of the command `parser` is named after.
 
 
 def run(args: argparse.Namespace) -> int:
   edit, seconds = run_stages(args.command, args)
-  final = 2 if edit.settings.edit.second_iteration else 1
+  # `update` and `finetune` stop in the first iteration (`LAST_STAGE`).
+  final = 2 if edit.settings.edit.second_iteration and args.command == "edit" else 1
   path = edit.directory.path
   dataset = f"edited dataset {path('dataset', iteration=final)}"
   nerf = f"edited NeRF {path('edited', iteration=final)}"

@@ -13,8 +13,9 @@ from signerf_jax.nerf.commands import evaluate as nerf_evaluate
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   target = parser.add_mutually_exclusive_group(required=True)
   target.add_argument("--run", help=nerf_evaluate.RUN_HELP)
-  target.add_argument("--edit", help="edit directory written by `signerf edit`: evaluate the "
-                      "edit instead (background preservation, consistency, CLIP)")
+  target.add_argument("--edit", help="the edit directory (`signerf place`, `preview` or `edit`): "
+                      "evaluate the edit instead, running any unfinished stage first "
+                      "(background preservation, consistency, CLIP)")
   nerf_evaluate.add_options(parser)
 
 

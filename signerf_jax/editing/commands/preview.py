@@ -10,12 +10,13 @@ from signerf_jax.validation import argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  add_edit_arguments(parser)
+  add_edit_arguments(parser, "preview")
   parser.add_argument("--seeds", type=argument_type(PreviewConfig, "seeds"), nargs="+",
-                      help="one candidate sheet per seed")
+                      help="one candidate sheet per seed (default: "
+                      f"{' '.join(map(str, PreviewConfig.seeds))})")
   parser.add_argument("--reroll", nargs="+", metavar="RECIPE",
                       help="re-rolled candidates, e.g. 2/1,4@7: sheet 2 with tiles 1 and 4 "
-                      "generated again with seed 7, the other tiles kept")
+                      "generated again with seed 7, the other tiles kept (default: none)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -87,8 +87,8 @@ class EditContext:
   @functools.cached_property
   def views(self) -> SceneViews:
     """The training views' cameras and scene frame: all the selection and the reference cameras
-    need, read in milliseconds without decoding the images (~2.5 s on stitch; the preview
-    needs no pixel)."""
+    need, read in milliseconds without decoding the images (seconds for a real capture; the
+    preview needs no pixel)."""
     options = dict(self.data_options)
     return load_views(options.pop("root"), split="train", **options)
 

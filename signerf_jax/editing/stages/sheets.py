@@ -100,9 +100,8 @@ def preview(context: EditContext) -> str:
     bar.update(len(made))
 
   # The user waits for the first candidate: they are made one at a time (preview.png shows each
-  # as it comes) by a program compiled for a quick start rather than a quick run (0.6 s less XLA
-  # compilation for 0.3 s more a sheet: the first candidate 0.3 s sooner;
-  # experiments/results/bench_winograd_compile_without_ynnpack.json).
+  # as it comes) by a program compiled for a quick start rather than a quick run (less XLA
+  # compilation for a slower sheet brings the first candidate sooner; docs/performance.md).
   generator = dataclasses.replace(context.generator(1), views_per_device=1,
                                   winograd_convolutions=False)
   with tqdm.tqdm(total=len(recipes) - len(shown), unit="sheet", desc="preview",

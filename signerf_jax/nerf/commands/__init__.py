@@ -41,19 +41,23 @@ class DataConfig(validation.CheckedFields):
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
   """Flags for every `DataConfig` field (default: the gin-bound value)."""
   parser.add_argument("--downscale", type=argument_type(DataConfig, "downscale"), default=None,
-                      help="integer image downscale")
+                      help="integer image downscale (default: the gin-bound "
+                      f"DataConfig.downscale, {DataConfig.downscale})")
   parser.add_argument("--eval_every", type=argument_type(DataConfig, "eval_every"), default=None,
                       help="hold out every N-th view (default: the dataset's own split, else 8)")
   parser.add_argument("--held_out", default=None,
-                      help="views to hold out: comma-separated names, or @FILE with one per line")
+                      help="views to hold out: comma-separated names, or @FILE with one per line "
+                      "(default: as --eval_every)")
   parser.add_argument("--scene_kind", default=None,
                       choices=typing.get_args(SceneKind),
-                      help="override the scene kind the data suggests")
+                      help="override the scene kind (default: the one the data suggests)")
   parser.add_argument("--scene_center", type=argument_type(DataConfig, "scene_center"), nargs=3,
                       default=None, metavar=("X", "Y", "Z"),
-                      help="centre of the region modelled in detail, in the dataset's units")
+                      help="centre of the region modelled in detail, in the dataset's units "
+                      "(default: found from the cameras and SfM points)")
   parser.add_argument("--scene_radius", type=argument_type(DataConfig, "scene_radius"),
-                      default=None, help="half-side of that region, in the dataset's units")
+                      default=None, help="half-side of that region, in the dataset's units "
+                      "(default: found from the cameras)")
 
 
 def _held_out_names(value: str) -> tuple[str, ...]:

@@ -30,7 +30,8 @@ def add_options(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
                       help="views to evaluate; eval (the held-out views) also reports the "
                       "training views' PSNR and the gap")
-  parser.add_argument("--lpips", default="", help="VGG-LPIPS weights (safetensors) for LPIPS")
+  parser.add_argument("--lpips", default="",
+                      help="VGG-LPIPS weights (safetensors) for LPIPS (default: none, no LPIPS)")
   parser.add_argument("--chunk_size", type=argument_type(PositiveInt),
                       default=render.DEFAULT_CHUNK_SIZE, help="rays rendered at once")
   add_supersampling(parser)

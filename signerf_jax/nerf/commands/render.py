@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from signerf_jax import ownership
+from signerf_jax import cli, ownership
 from signerf_jax.nerf import evaluate, render
 from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.nerf.commands.evaluate import add_supersampling
@@ -14,10 +14,10 @@ from signerf_jax.validation import PositiveInt, argument_type
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--run", required=True, help="run directory written by `signerf train`")
-  parser.add_argument("--out", default=None,
-                      help="output directory: new, empty, or renders signerf wrote (default "
-                      "RUN/renders); writes SPLIT/<view>.png, .depth.exr, .depth.png, "
-                      ".accumulation.png and video.mp4 there")
+  cli.add_output_argument(parser, "--out", default=None,
+                          help="output directory: new, empty, or renders signerf wrote (default: "
+                          "RUN/renders); writes SPLIT/<view>.png, .depth.exr, .depth.png, "
+                          ".accumulation.png and video.mp4 there")
   parser.add_argument("--split", default="eval", choices=("train", "eval", "all"),
                       help="which dataset views to render")
   parser.add_argument("--video", action="store_true", help="also render a camera-path video")

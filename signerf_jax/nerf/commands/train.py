@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from signerf_jax import checkpoints, configs, ownership
+from signerf_jax import checkpoints, cli, configs, ownership
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import load_dataset, load_views
 from signerf_jax.nerf import capacity, train, training_run
@@ -17,17 +17,19 @@ from signerf_jax.validation import argument_type
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--data", required=True,
-                      help="dataset directory (nerfstudio, Blender, LLFF, COLMAP, NeuS/IDR)")
-  parser.add_argument("--out", required=True,
-                      help="run directory: new or empty (a run starts), or a run of `signerf "
-                      "train` (it resumes); writes config.gin, model.json, checkpoint.msgpack, "
-                      "eval.json and eval/ there")
+  parser.add_argument("--data", required=True, help=cli.DATA_HELP)
+  cli.add_output_argument(
+      parser, "--run", deprecated=("--out",), required=True,
+      help="run directory: new or empty (a run starts), or a run of `signerf train` (it "
+      "resumes); writes config.gin, model.json, checkpoint.msgpack, eval.json and eval/ there")
   parser.add_argument("--steps", type=argument_type(train.TrainConfig, "steps"), default=None,
-                      help="overrides TrainConfig.steps")
+                      help="training steps (default: the gin-bound TrainConfig.steps, "
+                      f"{train.TrainConfig.steps})")
   parser.add_argument("--max_seconds", type=argument_type(train.TrainConfig, "max_seconds"),
                       default=None,
-                      help="training time budget: the schedule spans it (resumable)")
+                      help="training time budget in seconds: training stops there and the "
+                      "schedule spans it (resumable; default: the gin-bound "
+                      "TrainConfig.max_seconds, none)")
   parser.add_argument("--skip_eval", action="store_true",
                       help="do not evaluate on the held-out views after training")
   parser.add_argument("--start_over", action="store_true",
@@ -39,8 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-  run_dir = Path(args.out)
-  ownership.check_claimable(run_dir, ownership.RUN, inputs=(("data", args.data),))
+  run_dir = Path(args.run)
+  ownership.check_claimable(run_dir, ownership.RUN, inputs=(("data", args.data),), flag="run")
   resuming = checkpoints.has_checkpoint(run_dir) and not args.start_over
   saved_config = run_dir / configs.SAVED_CONFIG_NAME
   gin_files = args.gin_file
@@ -63,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
   print(f"signerf train: {dataset.num_images} training views of {dataset.width}x"
         f"{dataset.height} px; {frame_lib.summary_line(dataset.frame)}\n"
         f"signerf train: {capacity.describe(model.capacity)}", file=sys.stderr)
-  with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", args.data),)):
+  with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", args.data),), flag="run"):
     if args.start_over:
       ownership.remove_written(run_dir)
     configs.save_gin_config(run_dir)
