@@ -92,6 +92,20 @@ def _checkpoint_step(run_dir: Path) -> int:
   return int(metadata["step"])
 
 
+def stopped_at(training: "Training", signum: int, exit_code: int, run_dir: Path) -> int:
+  """Sends `signum` to the training; checks it exits with `exit_code`, no traceback, and one line
+  naming the step and `run_dir`, whose checkpoint holds that step. Returns the step."""
+  code, stderr = training.stop(signum)
+  assert code == exit_code, stderr
+  assert "Traceback" not in stderr
+  reported = INTERRUPTED.search(stderr)
+  assert reported, stderr
+  step = int(reported.group(1))
+  assert Path(reported.group(2)) == run_dir
+  assert _checkpoint_step(run_dir) == step
+  return step
+
+
 def test_sigint_then_sigterm_checkpoint_the_step_reached_and_the_same_command_resumes(
     scene, tmp_path):
   run_dir = tmp_path / "run"
@@ -99,24 +113,12 @@ def test_sigint_then_sigterm_checkpoint_the_step_reached_and_the_same_command_re
   first = Training(scene, run_dir)
   shown = first.wait_for_step(3)
   assert not checkpoints.has_checkpoint(run_dir)
-  code, stderr = first.stop(signal.SIGINT)
-  assert code == 130, stderr
-  assert "Traceback" not in stderr
-  reported = INTERRUPTED.search(stderr)
-  assert reported, stderr
-  step = int(reported.group(1))
-  assert step >= shown and Path(reported.group(2)) == run_dir
-  assert _checkpoint_step(run_dir) == step
+  step = stopped_at(first, signal.SIGINT, 130, run_dir)
+  assert step >= shown
 
   # The same command resumes from that step; SIGTERM stops it as Ctrl-C did.
   second = Training(scene, run_dir)
   shown = second.wait_for_step(step + 2)
   assert second.steps_shown()[0] >= step  # Counting on from the checkpoint, not from 0.
-  code, stderr = second.stop(signal.SIGTERM)
-  assert code == 143, stderr
-  assert "Traceback" not in stderr
-  reported = INTERRUPTED.search(stderr)
-  assert reported, stderr
-  resumed_step = int(reported.group(1))
+  resumed_step = stopped_at(second, signal.SIGTERM, 143, run_dir)
   assert resumed_step >= shown > step
-  assert _checkpoint_step(run_dir) == resumed_step
