@@ -8,7 +8,7 @@ In XLA's ops (`AttentionOptions.cpu_kernel` False) `key_chunk_size` splits each 
 keys into blocks; at least the key count (ALL_KEYS) gives the earlier path, every chunk against
 all keys at once. The default options run the fused kernel (cpu_attention.py). Three parts; the
 first two time the programs in one process, alternating call by call, each compiled with the
-float32 sampler's options (`sampler.FLOAT32_COMPILER_OPTIONS`):
+float32 sampler's options (`sampler.CPU_FLOAT32_COMPILER_OPTIONS`):
   attention  one SD 1.5 self-attention at the 64x64 latent's first two UNet levels (batch 2 as
              under classifier-free guidance: [2, 4096, 8, 40] and [2, 1024, 8, 80]) for query
              chunks of 512 and 1,024 against key blocks of 256 to 2,048 and ALL_KEYS, and the
@@ -91,7 +91,7 @@ def alternate(calls: dict[str, Callable[[int], Any]], baseline: str,
 
 def compiled(function, arguments):
   """`function` compiled for `arguments` as the float32 sampler is."""
-  return jax.jit(function, compiler_options=sampler.FLOAT32_COMPILER_OPTIONS).lower(
+  return jax.jit(function, compiler_options=sampler.CPU_FLOAT32_COMPILER_OPTIONS).lower(
       *arguments).compile()
 
 

@@ -4,8 +4,9 @@
 
 For every shape (batch, height, width, in channels, out channels) it compiles and times XLA's own
 convolution, the im2col matmul, Winograd's F(2x2, 3x3) and F(4x4, 3x3) (float32), and reports
-which one `layers.conv2d` picks, each one's compilation seconds and its largest difference from
-XLA's result relative to that result's largest magnitude. The algorithms run in turn, repeat
+which one `layers.conv2d` picks on a CPU (`layers.cpu_convolution_algorithm`), each one's
+compilation seconds and its largest difference from XLA's result relative to that result's
+largest magnitude. The algorithms run in turn, repeat
 after repeat, so a change of load slows them alike; the best of the repeats is reported.
 Writes NAME.json with the machine and load into --results DIR (default outputs/experiments/).
 """
@@ -66,7 +67,7 @@ def measure(shape: tuple[int, ...], repeats: int) -> dict:
       function(x, kernel).block_until_ready()
       seconds[name].append(time.perf_counter() - start)
   best = {name: min(values) for name, values in seconds.items()}
-  chosen = layers.convolution_algorithm(x.shape, kernel.shape, 1, 1, jnp.float32)
+  chosen = layers.cpu_convolution_algorithm(x.shape, kernel.shape, 1, 1, jnp.float32)
   return {"seconds": best, "compile_seconds": compile_seconds, "relative_error": errors,
           "fastest": min(best, key=best.get), "chosen": chosen,
           "chosen_over_fastest": best[chosen] / min(best.values()),

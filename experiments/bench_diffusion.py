@@ -10,7 +10,7 @@ of each timing round, which follows the machine's drift within the run), XLA's m
 plan, the largest output difference from torch (both run the same random weights, converted
 through our loader's name and layout mapping), and the bf16-compute option's speed and error
 (with the weights stored in bf16). Our forwards are compiled as the sampler compiles them
-(`sampler.program`: fp32 with `sampler.FLOAT32_COMPILER_OPTIONS`, XLA:CPU's matmuls kept out of
+(`sampler.program`: fp32 with `sampler.CPU_FLOAT32_COMPILER_OPTIONS`, XLA:CPU's matmuls kept out of
 YNNPACK; bf16 with XLA's defaults); the fp32 one is also timed compiled with XLA's defaults
 (`xla_default_options`), side by side.
 JAX and torch runs alternate and medians are reported, so a busy machine slows both alike;
@@ -153,7 +153,7 @@ def compare(name, jax_function, jax_args, torch_forward, torch_output, flops, re
   peak reading per round."""
   start = time.perf_counter()
   compiled = jax_function.lower(*jax_args).compile(
-      compiler_options=sampler.FLOAT32_COMPILER_OPTIONS)
+      compiler_options=sampler.CPU_FLOAT32_COMPILER_OPTIONS)
   compile_seconds = time.perf_counter() - start
   jax_output = np.asarray(compiled(*jax_args))
   difference = float(np.abs(jax_output - torch_output).max())

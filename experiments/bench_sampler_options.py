@@ -3,7 +3,7 @@
   python experiments/bench_sampler_options.py [--repeats 5] [--precisions float32 bfloat16] \
       [--name bench_sampler_options]
 
-The sampler of float32 models is compiled with `sampler.FLOAT32_COMPILER_OPTIONS` (XLA:CPU's
+The sampler of float32 models is compiled with `sampler.CPU_FLOAT32_COMPILER_OPTIONS` (XLA:CPU's
 matmuls kept out of YNNPACK), that of bfloat16 models with XLA's defaults. This samples the
 shipped model's 2 x 3 sheet of 64-px tiles (128 x 192 pixels, 20 DPM-Solver steps, guidance 7.5,
 ControlNet) with `sampler.sample` compiled both ways, in one process, the two alternating call by
@@ -42,7 +42,7 @@ BATCHES = {1: False, 4: True}
 
 
 # The two ways of compiling `sampler.sample` (its own jit is inlined into these).
-OPTIONS = {"without_ynnpack": sampler.FLOAT32_COMPILER_OPTIONS, "xla_default": None}
+OPTIONS = {"without_ynnpack": sampler.CPU_FLOAT32_COMPILER_OPTIONS, "xla_default": None}
 
 
 def measure(loaded: pipeline.Pipeline, batch: int, winograd: bool, repeats: int) -> dict:
@@ -79,7 +79,7 @@ def main() -> None:
   results_dir.add_argument(parser)
   args = parser.parse_args()
   record = {"what": __doc__.split("\n\n")[2].replace("\n", " "),
-            "compiler_options": sampler.FLOAT32_COMPILER_OPTIONS, "machine": machine.record(),
+            "compiler_options": sampler.CPU_FLOAT32_COMPILER_OPTIONS, "machine": machine.record(),
             "runs": []}
   for precision in args.precisions:
     dtype, compute_dtype = PRECISIONS[precision]

@@ -26,7 +26,7 @@ the operations' durations per forward (operations on different threads add up, s
 exceed the wall time); shares are of that sum. The 10 costliest operations are listed with their
 op_name.
 
-Under the float32 sampler's compiler options (`sampler.FLOAT32_COMPILER_OPTIONS`, what
+Under the float32 sampler's compiler options (`sampler.CPU_FLOAT32_COMPILER_OPTIONS`, what
 bench_diffusion times) XLA's own matmuls run outside the profiler's view, so a second part,
 "components", breaks the fp32 UNet's forward down bottom-up instead: the forward compiled with
 those options, and each level's Transformer2D block and its self-attention (projections

@@ -17,13 +17,19 @@ setting alone slows it; docs/performance.md). So the commands that train or rend
 call it first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`; the viewer too, whose frames
 are NeRF renders), those that only sample do not, and library code never does.
 SIGNERF_KEEP_FREED_MEMORY=0 in the environment leaves the allocator as it was. Elsewhere than
-glibc (macOS, musl) it does nothing.
+glibc (macOS, musl) it does nothing, and so it does where JAX computes on a GPU or TPU: their
+buffers are the device's memory, not `malloc`'s, and the setting was measured on CPUs only. The
+backend is read before JAX starts it (`backend_before_start`), since starting it starts the
+threads whose arenas the setting must precede.
 """
 
 from __future__ import annotations
 
 import ctypes
+import importlib.metadata
+import importlib.util
 import os
+import pkgutil
 
 # glibc's malloc.h parameter numbers.
 _M_TRIM_THRESHOLD = -1
@@ -31,6 +37,8 @@ _M_MMAP_MAX = -4
 _M_ARENA_MAX = -8
 SETTINGS = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, 2**31 - 1))
 ENVIRONMENT_VARIABLE = "SIGNERF_KEEP_FREED_MEMORY"
+# JAX_PLATFORMS's names of GPU platforms (JAX's backend name for all of them is "gpu").
+GPU_PLATFORMS = ("cuda", "rocm", "gpu")
 
 _kept = False
 
@@ -48,13 +56,41 @@ def _glibc() -> ctypes.CDLL | None:
   return library
 
 
-def keep_freed_memory() -> bool:
-  """Applies the settings above unless the environment says 0 or the C library is not glibc;
+def _jax_plugins_installed() -> bool:
+  """Whether a PJRT plugin is installed for JAX to load (CUDA's, ROCm's...): a module of the
+  `jax_plugins` namespace package or an entry point of that group, as JAX finds them."""
+  if importlib.metadata.entry_points(group="jax_plugins"):
+    return True
+  namespace = importlib.util.find_spec("jax_plugins")
+  locations = namespace.submodule_search_locations if namespace is not None else None
+  return bool(locations) and any(True for _ in pkgutil.iter_modules(locations))
+
+
+def backend_before_start() -> str:
+  """The backend JAX will compute on, found without starting JAX: the first platform named in
+  JAX_PLATFORMS ("cpu", "gpu" for CUDA or ROCm, "tpu"); without one, "tpu" where libtpu is
+  installed, "gpu" where a JAX plugin is, else "cpu". An accelerator's package on a machine
+  without the accelerator makes JAX fall back to the CPU while this says the accelerator:
+  freed memory is then not kept, which is slower, not wrong."""
+  platforms = os.environ.get("JAX_PLATFORMS", "").strip().lower()
+  if platforms:
+    first = platforms.split(",")[0].strip()
+    return "gpu" if first in GPU_PLATFORMS else first
+  if importlib.util.find_spec("libtpu") is not None:
+    return "tpu"
+  return "gpu" if _jax_plugins_installed() else "cpu"
+
+
+def keep_freed_memory(backend: str | None = None) -> bool:
+  """Applies the settings above where JAX computes on a CPU (`backend`; None:
+  `backend_before_start()`), unless the environment says 0 or the C library is not glibc;
   returns whether the process now keeps freed memory. Call it before JAX starts its threads
   (their arenas exist from then on); calling it again changes nothing."""
   global _kept
   if _kept or os.environ.get(ENVIRONMENT_VARIABLE, "1").strip() == "0":
     return _kept
+  if (backend or backend_before_start()) != "cpu":
+    return False
   library = _glibc()
   if library is None:
     return False

@@ -75,3 +75,54 @@ def test_without_glibc_nothing_changes(monkeypatch):
   monkeypatch.setattr(allocator, "_kept", False)
   monkeypatch.delenv(allocator.ENVIRONMENT_VARIABLE, raising=False)
   assert not allocator.keep_freed_memory()
+
+
+class RecordingLibrary:
+  """Stands in for glibc: records each `mallopt` call and accepts it."""
+
+  def __init__(self):
+    self.calls = []
+
+  def mallopt(self, option, value):
+    self.calls.append((option, value))
+    return 1
+
+
+@pytest.mark.parametrize("backend, kept", [("cpu", True), ("gpu", False), ("tpu", False)])
+def test_freed_memory_is_kept_on_cpus_only(monkeypatch, backend, kept):
+  """XLA:CPU's buffers come from `malloc`; a GPU's or TPU's are the device's memory."""
+  library = RecordingLibrary()
+  monkeypatch.setattr(allocator, "_glibc", lambda: library)
+  monkeypatch.setattr(allocator, "_kept", False)
+  monkeypatch.delenv(allocator.ENVIRONMENT_VARIABLE, raising=False)
+  assert allocator.keep_freed_memory(backend) == kept
+  assert library.calls == (list(allocator.SETTINGS) if kept else [])
+
+
+def test_without_a_backend_it_is_read_before_jax_starts(monkeypatch):
+  library = RecordingLibrary()
+  monkeypatch.setattr(allocator, "_glibc", lambda: library)
+  monkeypatch.setattr(allocator, "_kept", False)
+  monkeypatch.delenv(allocator.ENVIRONMENT_VARIABLE, raising=False)
+  monkeypatch.setattr(allocator, "backend_before_start", lambda: "gpu")
+  assert not allocator.keep_freed_memory() and not library.calls
+
+
+@pytest.mark.parametrize("platforms, expected", [
+    ("cpu", "cpu"), ("cuda", "gpu"), ("rocm,cpu", "gpu"), ("tpu", "tpu"), (" CPU , cuda", "cpu")])
+def test_jax_platforms_names_the_backend(monkeypatch, platforms, expected):
+  monkeypatch.setenv("JAX_PLATFORMS", platforms)
+  assert allocator.backend_before_start() == expected
+
+
+@pytest.mark.parametrize("libtpu, plugins, expected", [
+    (False, False, "cpu"), (False, True, "gpu"), (True, False, "tpu"), (True, True, "tpu")])
+def test_installed_accelerator_packages_name_the_backend(monkeypatch, libtpu, plugins, expected):
+  """Without JAX_PLATFORMS, JAX takes an accelerator whose package is installed."""
+  monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+  real_find_spec = allocator.importlib.util.find_spec
+  monkeypatch.setattr(allocator.importlib.util, "find_spec",
+                      lambda name: (object() if libtpu else None) if name == "libtpu"
+                      else real_find_spec(name))
+  monkeypatch.setattr(allocator, "_jax_plugins_installed", lambda: plugins)
+  assert allocator.backend_before_start() == expected

@@ -13,7 +13,9 @@ float rounding. Only tiny problems use the plain batched einsum.
 
 On a CPU, float32 attention instead runs a fused kernel of the same loop (cpu_attention.py: the
 scores stay in registers and cache: faster than XLA's ops, docs/performance.md) where it
-builds and the head size suits it; its gradient is the XLA path's.
+builds and the head size suits it; its gradient is the XLA path's. Both are CPU choices: on GPUs
+and TPUs attention is `jax.nn.dot_product_attention` with the implementation JAX picks (cuDNN's
+fused attention where JAX takes it), over chunks of queries (`attention_path`).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ from jax import lax
 
 from signerf_jax import validation
 from signerf_jax.diffusion import cpu_attention
-from signerf_jax.diffusion.layers import Conv2d, Dtype, GroupNorm, LayerNorm, Linear
+from signerf_jax.diffusion.layers import (Conv2d, Dtype, GroupNorm, LayerNorm, Linear,
+                                         backend_or_default)
 from signerf_jax.validation import NonNegativeInt, PositiveInt
 
 
@@ -39,7 +42,9 @@ class AttentionOptions(validation.CheckedFields):
 
   Attributes:
     query_chunk_size: most queries per chunk in the chunked path (the queries are split into
-      equal chunks, so 1,536 queries make two of 768).
+      equal chunks, so 1,536 queries make two of 768); on GPUs and TPUs, most queries per call
+      of `jax.nn.dot_product_attention`, whose XLA implementation holds a chunk's
+      [batch, heads, chunk, keys] scores at once.
     key_chunk_size: most keys per block of a chunk's online softmax (keys split likewise); the
       live score block of one head is [query chunk, key block] float32. At least the key count
       (e.g. 2**31) evaluates each chunk against all keys at once.
@@ -48,7 +53,7 @@ class AttentionOptions(validation.CheckedFields):
       on CPU is also the faster one from a few hundred tokens up.
     cpu_kernel: float32 attention on a CPU backend runs the fused kernel (cpu_attention.py)
       where it builds and takes the head size; the three fields above then apply only to its
-      gradient. False: always XLA's ops.
+      gradient. False: always XLA's ops. GPUs and TPUs ignore it.
   """
   query_chunk_size: PositiveInt = 1024
   key_chunk_size: PositiveInt = 512
@@ -101,10 +106,25 @@ def _attend_chunk(queries: jax.Array, keys: jax.Array, values: jax.Array,
   return weighted / total[:, None]
 
 
+def attention_path(head_dim: int, compute_dtype: Dtype, options: AttentionOptions,
+                   backend: str | None = None) -> str:
+  """How `dot_product_attention` computes heads of `head_dim` channels on `backend` (None: JAX's
+  default): "cpu_kernel", the fused kernel (a CPU, float32, `options.cpu_kernel`, a head size
+  it takes, and it builds here: `cpu_attention.load`); "xla_chunked", XLA's ops as described
+  above (any other case on a CPU); or "jax_nn", `jax.nn.dot_product_attention` (GPUs, TPUs)."""
+  if backend_or_default(backend) != "cpu":
+    return "jax_nn"
+  if (options.cpu_kernel and jnp.dtype(compute_dtype) == jnp.float32
+      and cpu_attention.supports(head_dim) and cpu_attention.load()):
+    return "cpu_kernel"
+  return "xla_chunked"
+
+
 def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
                           options: AttentionOptions = AttentionOptions(),
-                          compute_dtype: Dtype = jnp.float32) -> jax.Array:
-  """softmax(q k^T / sqrt(d)) v per head.
+                          compute_dtype: Dtype = jnp.float32,
+                          backend: str | None = None) -> jax.Array:
+  """softmax(q k^T / sqrt(d)) v per head, by `attention_path`'s choice for `backend`.
 
   Args:
     query: [B, Tq, H, D].
@@ -112,6 +132,7 @@ def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
     options: the fused CPU kernel or XLA's ops; plain-versus-chunked switch and chunk sizes.
     compute_dtype: input dtype of the two matmuls (they accumulate in float32; the softmax is
       always float32).
+    backend: "cpu", "gpu" or "tpu"; None: the one JAX computes on.
 
   Returns:
     [B, Tq, H, D] float32.
@@ -119,11 +140,29 @@ def dot_product_attention(query: jax.Array, key: jax.Array, value: jax.Array,
   head_dim = query.shape[-1]
   query = (query * head_dim**-0.5).astype(compute_dtype)
   key, value = key.astype(compute_dtype), value.astype(compute_dtype)
-  if (options.cpu_kernel and jnp.dtype(compute_dtype) == jnp.float32
-      and jax.default_backend() == "cpu" and cpu_attention.supports(head_dim)
-      and cpu_attention.load()):
+  path = attention_path(head_dim, compute_dtype, options, backend)
+  if path == "cpu_kernel":
     return _kernel_attention(query, key, value, options)
+  if path == "jax_nn":
+    return _library_attention(query, key, value, options)
   return _scaled_attention(query, key, value, options, compute_dtype)
+
+
+def _library_attention(query: jax.Array, key: jax.Array, value: jax.Array,
+                       options: AttentionOptions) -> jax.Array:
+  """`jax.nn.dot_product_attention` (JAX picks the implementation) on inputs already scaled and
+  cast, over equal chunks of at most `options.query_chunk_size` queries: JAX's XLA
+  implementation holds all of a call's scores, which for a whole sheet's tokens would be tens
+  of gigabytes. -> [B, Tq, H, D] float32."""
+  batch, query_tokens, heads, head_dim = query.shape
+  attend = lambda queries: jax.nn.dot_product_attention(queries, key, value, scale=1.0)
+  chunks, chunk = _equal_chunks(query_tokens, options.query_chunk_size)
+  if chunks == 1:
+    return attend(query).astype(jnp.float32)
+  query = jnp.pad(query, ((0, 0), (0, chunks * chunk - query_tokens), (0, 0), (0, 0)))
+  out = lax.map(attend, query.reshape(batch, chunks, chunk, heads, head_dim).swapaxes(0, 1))
+  out = out.swapaxes(0, 1).reshape(batch, chunks * chunk, heads, head_dim)
+  return out[:, :query_tokens].astype(jnp.float32)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))

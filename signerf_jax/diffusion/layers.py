@@ -7,10 +7,11 @@ kernels [kh, kw, in, out] (HWIO), dense kernels [in, out], norm `scale`/`bias` [
 `signerf_jax.diffusion.weights` converts diffusers' OIHW / [out, in] tensors into this layout.
 
 The layers are dense (`Linear`), convolution (`Conv2d`, and `UpsampleConv`: nearest upsampling
-then a convolution), `GroupNorm` and `LayerNorm`. A convolution runs by the fastest exact
-algorithm for its size (`conv2d`: an im2col matmul, Winograd's F(4x4, 3x3) or F(2x2, 3x3) --
-`signerf_jax.diffusion.winograd` -- or XLA's own); the rewrites are differentiated as XLA's
-convolution.
+then a convolution), `GroupNorm` and `LayerNorm`. On a CPU a convolution runs by the algorithm
+measured fastest there for its size (`cpu_convolution_algorithm`: an im2col matmul, Winograd's
+F(4x4, 3x3) or F(2x2, 3x3) -- `signerf_jax.diffusion.winograd` -- or XLA's own); on GPUs and
+TPUs always by XLA's own, which cuDNN or the TPU compiler implement (`convolution_algorithm`).
+The rewrites are differentiated as XLA's convolution.
 
 Precision: `compute_dtype` is the dtype of the inputs of matmuls and convolutions (float32, or
 bfloat16 for the fast option); they always accumulate and return float32, and normalisation
@@ -58,22 +59,36 @@ class Linear(nn.Module):
     return y
 
 
-# How convolutions are computed, each way where it measured faster on CPUs than XLA's own
-# convolution (docs/performance.md): 3x3 same-size ones on small maps as one im2col matmul, on
-# large maps by Winograd's algorithm once there are enough output tiles to pay for the input and
-# output transforms (the kernel's is computed once a sampler run: XLA hoists it out of the
-# denoising loop), and as long as the transformed input stays small -- full-resolution VAE maps
-# of a 1024x1536 sheet would need gigabytes. With at least WINOGRAD_MIN_TILES 4x4 tiles by
-# F(4x4, 3x3) (transformed input 2.25x the input), the faster of the two on large maps, else
-# with that many 2x2 tiles by F(2x2, 3x3) (4x the input), which stays ahead where 4x4 tiles are
-# too few. XLA's bfloat16 convolution is no faster than float32 while bfloat16 matmuls are, so
-# with bfloat16 compute every other convolution is an im2col matmul too when its patch matrix
-# fits in IM2COL_MAX_BYTES.
-IM2COL_MAX_POSITIONS = 512
-IM2COL_MAX_BYTES = 2**29
-WINOGRAD_MIN_TILES = 512
-WINOGRAD_MIN_CHANNELS = 64
-WINOGRAD_MAX_TRANSFORMED_BYTES = 2**29
+# How convolutions are computed on CPUs, each way where it measured faster there than XLA's own
+# convolution (docs/performance.md; nothing here was measured on GPUs or TPUs, which take XLA's):
+# 3x3 same-size ones on small maps as one im2col matmul, on large maps by Winograd's algorithm
+# once there are enough output tiles to pay for the input and output transforms (the kernel's
+# is computed once a sampler run: XLA hoists it out of the denoising loop), and as long as the
+# transformed input stays small -- full-resolution VAE maps of a 1024x1536 sheet would need
+# gigabytes. With at least CPU_WINOGRAD_MIN_TILES 4x4 tiles by F(4x4, 3x3) (transformed input
+# 2.25x the input), the faster of the two on large maps, else with that many 2x2 tiles by
+# F(2x2, 3x3) (4x the input), which stays ahead where 4x4 tiles are too few. XLA's bfloat16
+# convolution is no faster than float32 while bfloat16 matmuls are, so with bfloat16 compute
+# every other convolution is an im2col matmul too when its patch matrix fits in
+# CPU_IM2COL_MAX_BYTES.
+CPU_IM2COL_MAX_POSITIONS = 512
+CPU_IM2COL_MAX_BYTES = 2**29
+CPU_WINOGRAD_MIN_TILES = 512
+CPU_WINOGRAD_MIN_CHANNELS = 64
+CPU_WINOGRAD_MAX_TRANSFORMED_BYTES = 2**29
+# The Winograd output tiles allowed per compute dtype: those whose error stays within the
+# dtype's bound (tests/diffusion/test_numerics.py states the bounds and checks them: 5e-5 of
+# the outputs' largest magnitude in float32, 2e-2 in bfloat16). In bfloat16, F(4x4)'s
+# transforms (constants up to 8, and 1/24) magnify the rounding of the bfloat16 Winograd-domain
+# tiles to 7e-2 - 9e-2, against <= 7.5e-3 for F(2x2) and <= 5.7e-3 for a direct convolution.
+CPU_WINOGRAD_OUTPUT_TILES = {"float32": (4, 2), "bfloat16": (2,)}
+
+
+def backend_or_default(backend: str | None) -> str:
+  """`backend` as given ("cpu", "gpu", "tpu"), or where None the one JAX computes on
+  (`jax.default_backend()`, read when the caller is traced: a program is built for the backend
+  it will run on). Tests pass a backend to check each one's choices without its device."""
+  return jax.default_backend() if backend is None else backend
 
 
 # Whether `conv2d` may choose Winograd, for the program being traced (`winograd_convolutions`).
@@ -82,7 +97,8 @@ _tracing = threading.local()
 
 @contextlib.contextmanager
 def winograd_convolutions(enabled: bool) -> Iterator[None]:
-  """Allows (the default) or forbids Winograd convolutions in what is traced inside.
+  """Allows (the default) or forbids Winograd convolutions in what is traced inside (they are
+  only ever a CPU's choice: `cpu_convolution_algorithm`).
 
   Winograd's transforms are many small ops for XLA to compile: they make each call faster but
   add more compilation than a program run a few times (the preview's) earns back. A jitted
@@ -170,40 +186,56 @@ def winograd_2x2_conv3x3(x: jax.Array, kernel: jax.Array, compute_dtype: Dtype) 
 @_differentiated_as(_same_size_xla_conv)
 def winograd_4x4_conv3x3(x: jax.Array, kernel: jax.Array, compute_dtype: Dtype) -> jax.Array:
   """The same by F(4x4, 3x3): H and W multiples of 4; 4x fewer FLOPs than direct convolution
-  (2.25x for F(2x2)), ~2e-5 relative error in float32."""
+  (2.25x for F(2x2)), ~2e-5 relative error in float32 but ~8e-2 in bfloat16 (so not chosen
+  there: `CPU_WINOGRAD_OUTPUT_TILES`)."""
   return winograd.conv3x3(x, kernel, compute_dtype, output_tile=4)
 
 
 def convolution_algorithm(x_shape: tuple[int, ...], kernel_shape: tuple[int, ...], stride: int,
-                          padding: Padding, compute_dtype: Dtype) -> str:
-  """How `conv2d` computes a convolution of these shapes (see above): "matmul" (1x1), "im2col",
-  "winograd_4x4", "winograd_2x2" or "xla"."""
+                          padding: Padding, compute_dtype: Dtype, backend: str | None = None
+                          ) -> str:
+  """How `conv2d` computes a convolution of these shapes on `backend` (None: JAX's default):
+  on a CPU `cpu_convolution_algorithm`'s choice; on GPUs and TPUs "xla", XLA's own convolution,
+  which cuDNN or the TPU compiler run (the CPU thresholds say nothing of those devices, and
+  Winograd in bfloat16 would lose accuracy there too)."""
+  if backend_or_default(backend) != "cpu":
+    return "xla"
+  return cpu_convolution_algorithm(x_shape, kernel_shape, stride, padding, compute_dtype)
+
+
+def cpu_convolution_algorithm(x_shape: tuple[int, ...], kernel_shape: tuple[int, ...],
+                              stride: int, padding: Padding, compute_dtype: Dtype) -> str:
+  """The fastest way measured on CPUs for a convolution of x [B, H, W, C] by a kernel
+  [kh, kw, C, O] (see above): "matmul" (1x1), "im2col", "winograd_4x4", "winograd_2x2" or
+  "xla"; Winograd only with output tiles allowed for `compute_dtype`."""
   batch, height, width, channels = x_shape
   kernel_height, kernel_width, _, out = kernel_shape
   if (kernel_height, kernel_width) == (1, 1) and stride == 1 and padding == 0:
     return "matmul"
   if (kernel_height, kernel_width) == (3, 3) and stride == 1 and padding == 1:
-    if batch * height * width <= IM2COL_MAX_POSITIONS:
+    if batch * height * width <= CPU_IM2COL_MAX_POSITIONS:
       return "im2col"
-    if getattr(_tracing, "winograd", True) and min(channels, out) >= WINOGRAD_MIN_CHANNELS:
-      for output_tile in (4, 2):
+    if getattr(_tracing, "winograd", True) and min(channels, out) >= CPU_WINOGRAD_MIN_CHANNELS:
+      for output_tile in CPU_WINOGRAD_OUTPUT_TILES.get(jnp.dtype(compute_dtype).name, ()):
         tiles = batch * height * width // output_tile**2
-        transformed_bytes = (output_tile + 2)**2 * tiles * channels * 4
+        transformed_bytes = (output_tile + 2)**2 * tiles * channels * 4  # float32 transforms
         if (height % output_tile == 0 and width % output_tile == 0
-            and tiles >= WINOGRAD_MIN_TILES
-            and transformed_bytes <= WINOGRAD_MAX_TRANSFORMED_BYTES):
+            and tiles >= CPU_WINOGRAD_MIN_TILES
+            and transformed_bytes <= CPU_WINOGRAD_MAX_TRANSFORMED_BYTES):
           return f"winograd_{output_tile}x{output_tile}"
   patch_bytes = (batch * height * width // stride**2 * kernel_height * kernel_width * channels
                  * jnp.dtype(compute_dtype).itemsize)
-  if jnp.dtype(compute_dtype) == jnp.bfloat16 and patch_bytes <= IM2COL_MAX_BYTES:
+  if jnp.dtype(compute_dtype) == jnp.bfloat16 and patch_bytes <= CPU_IM2COL_MAX_BYTES:
     return "im2col"
   return "xla"
 
 
 def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: Padding,
-           compute_dtype: Dtype) -> jax.Array:
-  """NHWC x HWIO convolution -> float32, by the fastest algorithm for its size (see above)."""
-  algorithm = convolution_algorithm(x.shape, kernel.shape, stride, padding, compute_dtype)
+           compute_dtype: Dtype, backend: str | None = None) -> jax.Array:
+  """NHWC x HWIO convolution -> float32, by `convolution_algorithm`'s choice for its size and
+  `backend` (None: JAX's default)."""
+  algorithm = convolution_algorithm(x.shape, kernel.shape, stride, padding, compute_dtype,
+                                    backend)
   if algorithm == "matmul":
     return matmul(x, kernel[0, 0], compute_dtype)
   if algorithm == "winograd_4x4":

@@ -158,8 +158,8 @@ class SamplerSettings:
       level; otherwise from pure noise scaled by `init_noise_sigma`.
     paste_back: composite the output over the input image through the (blurred) mask.
     mask_blur: PIL GaussianBlur radius (pixels) applied to the mask for the paste-back; 0 = none.
-    winograd_convolutions: let large 3x3 convolutions run by Winograd's algorithm (faster to
-      run, slower to compile: `layers.winograd_convolutions`); results agree to float rounding.
+    winograd_convolutions: let large 3x3 convolutions on a CPU run by Winograd's algorithm
+      (faster, slower to compile: `layers.winograd_convolutions`); results agree to rounding.
   """
   classifier_free_guidance: bool = True
   guess_mode: bool = False
@@ -376,24 +376,25 @@ def sample(models: DiffusionModels, schedule: Schedule, prompt: PromptEmbeddings
   return generated
 
 
-# How XLA compiles the sampler for float32 models. jaxlib 0.10's XLA:CPU hands every matmul to
-# YNNPACK by default (a "__ynn_fusion" per dot in the optimised HLO); this option keeps them XLA's
-# own dots, which measured faster for the shipped model's sampler on CPUs (docs/performance.md);
-# SD 1.5's UNet changes within noise and NeRF training is slower, so only this program sets it.
-# bfloat16 models keep XLA's defaults: without YNNPACK SD 1.5's bfloat16 UNet ran slower (the
-# shipped model's faster), and those measurements were on a CPU without bfloat16 instructions,
-# while bfloat16 pays only on CPUs with them. On GPUs and TPUs, where the option means nothing
-# and this project cannot test it, the sampler keeps XLA's defaults too.
-FLOAT32_COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
-_FLOAT32_SAMPLE = jax.jit(sample.__wrapped__, static_argnames=("settings",),
-                          compiler_options=FLOAT32_COMPILER_OPTIONS)
+# How XLA:CPU compiles the sampler for float32 models. jaxlib 0.10's XLA:CPU hands every matmul
+# to YNNPACK by default (a "__ynn_fusion" per dot in the optimised HLO); this option keeps them
+# XLA's own dots, which measured faster for the shipped model's sampler on CPUs
+# (docs/performance.md); SD 1.5's UNet changes within noise and NeRF training is slower, so only
+# this program sets it. bfloat16 models keep XLA's defaults: without YNNPACK SD 1.5's bfloat16
+# UNet ran slower (the shipped model's faster), and those measurements were on a CPU without
+# bfloat16 instructions, while bfloat16 pays only on CPUs with them. On GPUs and TPUs, where the
+# option means nothing, the sampler keeps XLA's defaults too.
+CPU_FLOAT32_COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+_CPU_FLOAT32_SAMPLE = jax.jit(sample.__wrapped__, static_argnames=("settings",),
+                              compiler_options=CPU_FLOAT32_COMPILER_OPTIONS)
 
 
-def program(models: DiffusionModels):
+def program(models: DiffusionModels, backend: str | None = None):
   """The jitted sampler `pipeline.generate` runs for `models` (`sample`'s arguments, `settings`
-  by keyword): `sample` compiled with `FLOAT32_COMPILER_OPTIONS` when the UNet computes in
-  float32 on a CPU, `sample` itself otherwise. Like any jit with compiler options, the float32
-  one cannot be called inside another jit: there call `sample`, which that jit's options then
-  compile."""
+  by keyword): `sample` compiled with `CPU_FLOAT32_COMPILER_OPTIONS` when the UNet computes in
+  float32 on a CPU `backend` (None: JAX's default), `sample` itself otherwise. Like any jit
+  with compiler options, the float32 one cannot be called inside another jit: there call
+  `sample`, which that jit's options then compile."""
   float32 = jnp.dtype(models.unet.compute_dtype) == jnp.float32
-  return _FLOAT32_SAMPLE if float32 and jax.default_backend() == "cpu" else sample
+  cpu = layers.backend_or_default(backend) == "cpu"
+  return _CPU_FLOAT32_SAMPLE if float32 and cpu else sample

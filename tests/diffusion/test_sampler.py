@@ -105,9 +105,9 @@ def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatc
   """Without Winograd (the preview's quick-to-compile program) the sampler is its own compiled
   program, with XLA's convolutions where Winograd's matmuls were, and samples the same image to
   float rounding. The tiny networks take Winograd only with its size limits lowered."""
-  monkeypatch.setattr(layers, "IM2COL_MAX_POSITIONS", 0)
-  monkeypatch.setattr(layers, "WINOGRAD_MIN_TILES", 1)
-  monkeypatch.setattr(layers, "WINOGRAD_MIN_CHANNELS", 8)
+  monkeypatch.setattr(layers, "CPU_IM2COL_MAX_POSITIONS", 0)
+  monkeypatch.setattr(layers, "CPU_WINOGRAD_MIN_TILES", 1)
+  monkeypatch.setattr(layers, "CPU_WINOGRAD_MIN_CHANNELS", 8)
   # A size no other test samples, so no program is shared with them.
   arguments = small_sheet_arguments(40, 24)
   lowered = {winograd: sampler.program(arguments[0]).lower(
@@ -125,7 +125,7 @@ def test_winograd_convolutions_are_a_static_choice_with_equal_results(monkeypatc
 
 @pytest.mark.slow
 def test_float32_models_sample_without_ynnpack_bfloat16_ones_with_xla_defaults():
-  """`sampler.FLOAT32_COMPILER_OPTIONS` reach the float32 models' program: XLA:CPU's defaults
+  """`sampler.CPU_FLOAT32_COMPILER_OPTIONS` reach the float32 models' program: XLA:CPU's defaults
   (bfloat16 models' program, `sample` itself, and so a caller's own jit around it) hand its
   matmuls to YNNPACK fusions. Both compilations of the float32 models sample the same images to
   float rounding."""

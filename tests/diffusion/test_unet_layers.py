@@ -60,9 +60,9 @@ def test_im2col_equals_direct_convolution(kernel_size, stride, padding):
   np.testing.assert_allclose(out, expected, atol=1e-4, rtol=0)
 
 
-def test_conv2d_picks_the_algorithm_by_size():
+def test_conv2d_picks_the_cpu_algorithm_by_size():
   def algorithm(shape, compute_dtype=jnp.float32):
-    return layers.convolution_algorithm(shape, (3, 3, 64, 64), 1, 1, compute_dtype)
+    return layers.cpu_convolution_algorithm(shape, (3, 3, 64, 64), 1, 1, compute_dtype)
 
   four_tiles, two_tiles = (2, 64, 64, 64), (2, 32, 32, 64)
   im2col, odd = (2, 16, 16, 64), (2, 32, 31, 64)
@@ -74,6 +74,7 @@ def test_conv2d_picks_the_algorithm_by_size():
   assert algorithm((1, 768, 768, 64)) == "winograd_4x4"  # 340 MB; F(2x2) would take 604
   assert algorithm((1, 1024, 1536, 64)) == "xla"  # Winograd would need 0.9 GB (F(4x4))
   assert algorithm(odd, jnp.bfloat16) == "im2col"  # bf16 matmul
+  assert algorithm(four_tiles, jnp.bfloat16) == "winograd_2x2"  # F(4x4) is too inexact in bf16
   with layers.winograd_convolutions(False):
     assert algorithm(four_tiles) == algorithm(two_tiles) == "xla"
     assert algorithm(im2col) == "im2col"  # Only Winograd is turned off.

@@ -24,8 +24,8 @@ def nhwc(tensor) -> np.ndarray:
 def test_encode_and_decode_match_diffusers(reference_vae, monkeypatch, winograd):
   """`winograd` lowers the size thresholds so every 3x3 convolution takes that path."""
   if winograd:
-    monkeypatch.setattr(layers, "WINOGRAD_MIN_TILES", 1)
-    monkeypatch.setattr(layers, "WINOGRAD_MIN_CHANNELS", 1)
+    monkeypatch.setattr(layers, "CPU_WINOGRAD_MIN_TILES", 1)
+    monkeypatch.setattr(layers, "CPU_WINOGRAD_MIN_CHANNELS", 1)
   model, directory = reference_vae
   generator = torch.Generator().manual_seed(0)
   images = torch.rand(2, 3, 16, 24, generator=generator) * 2 - 1
