@@ -219,38 +219,6 @@ def pixel_rays(cameras: Cameras, camera_indices, pixel_x, pixel_y) -> Rays:
   )
 
 
-def rotation_from_axis_angle(axis_angle):
-  """[..., 3, 3] rotations exp([w]x) of axis-angle vectors w [..., 3] (Rodrigues' formula;
-  exact and differentiable at w = 0)."""
-  angle_squared = jnp.sum(axis_angle**2, axis=-1)[..., None, None]
-  x, y, z = jnp.moveaxis(axis_angle, -1, 0)
-  zeros = jnp.zeros_like(x)
-  skew = jnp.stack([jnp.stack([zeros, -z, y], -1), jnp.stack([z, zeros, -x], -1),
-                    jnp.stack([-y, x, zeros], -1)], -2)
-  # sin(a) / a and (1 - cos(a)) / a^2 by their Taylor series near 0 (the closed forms are 0/0).
-  small = angle_squared < 1e-8
-  safe = jnp.where(small, 1.0, angle_squared)
-  angle = jnp.sqrt(safe)
-  first = jnp.where(small, 1.0 - angle_squared / 6.0, jnp.sin(angle) / angle)
-  second = jnp.where(small, 0.5 - angle_squared / 24.0, (1.0 - jnp.cos(angle)) / safe)
-  return jnp.eye(3) + first * skew + second * (skew @ skew)
-
-
-def refine_rays(rays: Rays, adjustments) -> Rays:
-  """The rays of cameras whose poses are corrected: camera i turned about its own centre by the
-  axis-angle adjustments[i, :3] (radians, world axes) and moved by adjustments[i, 3:] (scene
-  units). Used to refine poses while training (the corrections are trained parameters).
-
-  Args:
-    rays: Rays [...], whose camera_indices index `adjustments`.
-    adjustments: [N, 6] float32 per-camera corrections (zero: the rays unchanged).
-  """
-  correction = adjustments[rays.camera_indices]
-  rotation = rotation_from_axis_angle(correction[..., :3])
-  return rays.replace(origins=rays.origins + correction[..., 3:],
-                      directions=jnp.einsum("...ij,...j->...i", rotation, rays.directions))
-
-
 def image_rays(cameras: Cameras, camera_index, subpixel=(0.5, 0.5)) -> Rays:
   """One ray per pixel of one camera, shape [height, width].
 

@@ -15,7 +15,7 @@ import hashlib
 import os
 import warnings
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Callable, TypeVar
 
 import flax.serialization
 import jax
@@ -99,16 +99,22 @@ def _read_file(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
   return contents["state"], contents.get("metadata", {})
 
 
-def restore(directory: str | os.PathLike, template: State) -> tuple[State, dict[str, Any]]:
+def restore(directory: str | os.PathLike, template: State,
+            upgrade: Callable[[dict[str, Any]], dict[str, Any]] | None = None
+            ) -> tuple[State, dict[str, Any]]:
   """Reads a checkpoint into the structure of `template` (shapes must match).
 
+  Args:
+    upgrade: maps the checkpoint's state dict to the current layout (what an older version
+      of the trainer wrote), or None.
   Returns:
     (state, metadata).
   """
   state_dict, metadata = read(directory)
   path = checkpoint_path(directory)
   try:
-    state = flax.serialization.from_state_dict(template, state_dict)
+    state = flax.serialization.from_state_dict(
+        template, state_dict if upgrade is None else upgrade(state_dict))
   except (ValueError, KeyError, TypeError) as error:
     raise InputError(f"checkpoint does not match this model ({error})", path, "state") from None
   template_shapes = [np.shape(leaf) for leaf in jax.tree.leaves(template)]

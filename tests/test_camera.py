@@ -3,7 +3,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from signerf_jax import camera, lens
 
@@ -294,32 +293,3 @@ def test_random_rays_stay_in_range_and_do_not_recompile(fisheye):
   other_coefficients = cameras.replace(distortion=cameras.distortion * 0.5)
   sample(jax.random.PRNGKey(2), other_coefficients, 256)
   assert sample._cache_size() == sizes_before
-
-
-@pytest.mark.parametrize("axis_angle", [[0.0, 0.0, 0.0], [1e-6, -2e-6, 0.0], [0.3, -0.2, 0.9],
-                                        [np.pi, 0.0, 0.0]])
-def test_axis_angle_rotations_are_proper_and_match_scipy(axis_angle):
-  rotation = np.asarray(camera.rotation_from_axis_angle(jnp.asarray(axis_angle, jnp.float32)))
-  np.testing.assert_allclose(rotation, Rotation.from_rotvec(axis_angle).as_matrix(), atol=1e-6)
-  np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
-  gradient = jax.jacfwd(camera.rotation_from_axis_angle)(jnp.asarray(axis_angle, jnp.float32))
-  assert np.all(np.isfinite(gradient))
-
-
-@pytest.mark.slow
-def test_refined_rays_turn_about_and_move_their_own_camera():
-  cameras = camera.Cameras.create(np.stack([np.eye(4)[:3], np.eye(4)[:3]]), fx=10.0, width=8,
-                                  height=6)
-  rays = camera.image_rays(cameras, 1)
-  unchanged = camera.refine_rays(rays, jnp.zeros((2, 6)))
-  np.testing.assert_array_equal(unchanged.directions, rays.directions)
-  np.testing.assert_array_equal(unchanged.origins, rays.origins)
-  adjustments = jnp.zeros((2, 6)).at[1].set([0.0, 0.0, 0.5, 1.0, 2.0, 3.0])
-  refined = camera.refine_rays(rays, adjustments)
-  np.testing.assert_allclose(refined.origins, np.broadcast_to([1.0, 2.0, 3.0], (6, 8, 3)))
-  turn = np.asarray(camera.rotation_from_axis_angle(jnp.array([0.0, 0.0, 0.5])))
-  np.testing.assert_allclose(refined.directions, np.asarray(rays.directions) @ turn.T, atol=1e-6)
-  # Camera 0's corrections do not touch camera 1's rays; gradients reach the corrections.
-  gradient = jax.grad(lambda a: jnp.sum(camera.refine_rays(rays, a).directions[..., 0]))(
-      adjustments)
-  assert np.all(gradient[0] == 0) and np.any(gradient[1, :3] != 0)

@@ -29,6 +29,12 @@ from signerf_jax.nerf.scene_info import SceneInfo, check_scene
 from signerf_jax.validation import PositiveFloat, PositiveInt, Range
 
 
+# Capacity fields of older model.json files -> the one value the code still supports (it
+# builds that model): every level of the grid hashed when it does not fit its table, and the
+# cameras' poses as given (no trained pose corrections).
+REMOVED_FIELDS = {"hashed": True, "pose_refinement": False}
+
+
 @dataclasses.dataclass(frozen=True)
 class Capacity:
   """Every size that shapes the model and its sampling (static under jit).
@@ -39,8 +45,8 @@ class Capacity:
       coordinates (NDC's warp) and samples are spaced evenly in disparity.
     background: "constant" (the scene's colour) or "last_sample" (last interval to infinity).
     sampler: "occupancy" (bounded scenes) or "proposal" (nerfacto-style proposal networks).
-    num_levels, base_resolution, finest_resolution, log2_table_size, features_per_level, hashed:
-      the radiance field's grid (see `encoding.grid_layout`).
+    num_levels, base_resolution, finest_resolution, log2_table_size, features_per_level: the
+      radiance field's grid (see `encoding.grid_layout`).
     mlp_width: hidden width of the radiance field's MLPs.
     appearance_embedding: learn a per-image appearance code.
     rays_per_batch: rays per training step.
@@ -63,8 +69,6 @@ class Capacity:
       `losses.near_camera_gradient_scaling`), against floaters in front of the cameras.
     coarse_to_fine: fraction of training over which the radiance field's finer grid levels
       are switched on one after another (`encoding.level_weights_at`); 0: all from the start.
-    pose_refinement: train a pose correction per training camera (`camera.refine_rays`);
-      held-out views keep their given poses.
     pixel_samples: rays per pixel side. A pixel is the mean colour of the pixel_samples^2 rays
       through a grid of points inside it (`camera.subpixel_positions`), as a photo's pixel is
       the mean of the light over its area: training compares that mean with the photo (an
@@ -81,7 +85,6 @@ class Capacity:
   finest_resolution: int
   log2_table_size: int
   features_per_level: int = 2
-  hashed: bool = True
   mlp_width: int = 64
   appearance_embedding: bool = False
   rays_per_batch: int = 8192
@@ -96,13 +99,23 @@ class Capacity:
   proposal_log2_table_size: int = 16
   near_gradient_scaling: bool = False
   coarse_to_fine: float = 0.0
-  pose_refinement: bool = False
   perspective_warp: bool = False
   pixel_samples: int = 1
 
   @classmethod
   def from_json(cls, value: Mapping[str, Any]) -> "Capacity":
+    """The capacity a run's model.json records (`dataclasses.asdict`). Older files also hold
+    the removed fields of `REMOVED_FIELDS`, which must have the value the code now always uses.
+
+    Raises:
+      InputError: a removed field with another value (a model this code cannot rebuild).
+    """
     value = dict(value)
+    for name, only_value in REMOVED_FIELDS.items():
+      if value.get(name, only_value) != only_value:
+        raise InputError(f"{name} = {value[name]!r}: a model with an option signerf no longer "
+                         "has; train it again", field=f"capacity.{name}")
+      value.pop(name, None)
     value["proposal_samples"] = tuple(value["proposal_samples"])
     return cls(**value)
 
@@ -308,8 +321,6 @@ def describe(capacity: Capacity) -> str:
     parts.append("near-camera gradient scaling")
   if capacity.coarse_to_fine > 0:
     parts.append(f"coarse-to-fine grid levels over {capacity.coarse_to_fine:.0%} of training")
-  if capacity.pose_refinement:
-    parts.append("camera pose refinement")
   if capacity.pixel_samples > 1:
     parts.append(f"{capacity.pixel_samples} x {capacity.pixel_samples} rays a pixel in training "
                  "and rendering (a sparse bounded capture)")

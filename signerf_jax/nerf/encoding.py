@@ -4,7 +4,6 @@ The hash grid keeps ONE flat feature table for all levels and gathers each cube 
 levels at once: on CPU a Python loop over levels (many small gathers) is ~100x slower than these
 eight large gathers (see shared/notes/cpu-performance.md). Levels whose (resolution + 1)^3 vertices
 fit in their table slot are stored densely (exact, no collisions); only finer levels are hashed.
-With `hashed=False` every level is dense: the dense-grid option.
 """
 
 from __future__ import annotations
@@ -55,7 +54,7 @@ class GridLayout:
 
 
 def grid_layout(num_levels: int, base_resolution: int, finest_resolution: int,
-                log2_table_size: int, features_per_level: int, hashed: bool = True) -> GridLayout:
+                log2_table_size: int, features_per_level: int) -> GridLayout:
   """Lays out a geometric series of grid resolutions from base to finest.
 
   Args:
@@ -63,7 +62,6 @@ def grid_layout(num_levels: int, base_resolution: int, finest_resolution: int,
     base_resolution, finest_resolution: cells per axis at the coarsest / finest level.
     log2_table_size: log2 of the maximum rows per hashed level.
     features_per_level: features per row F.
-    hashed: False stores every level densely (the dense-grid option; table size is ignored).
   """
   if num_levels == 1:
     resolutions = (int(finest_resolution),)
@@ -75,7 +73,7 @@ def grid_layout(num_levels: int, base_resolution: int, finest_resolution: int,
   table_sizes, dense, offsets, offset = [], [], [], 0
   for resolution in resolutions:
     vertices = (resolution + 1)**3
-    is_dense = (not hashed) or vertices <= max_rows
+    is_dense = vertices <= max_rows
     # Rows are padded to a multiple of 8 so the next level starts aligned; a hashed level keeps
     # its power-of-two size (at least 8), which `_corner_rows` relies on.
     size = int(math.ceil(vertices / 8) * 8) if is_dense else max(max_rows, 8)

@@ -49,7 +49,7 @@ def load_run(run_dir: str | os.PathLike) -> TrainedRun:
   model, description = training_run.read_model_file(run_dir)
   # Only the structure is needed: tracing the initialisation is seconds faster than running it.
   template = jax.eval_shape(lambda: train.init_state(model, train.TrainConfig()))
-  state, metadata = checkpoints.restore(run_dir, template)
+  state, metadata = checkpoints.restore(run_dir, template, train.upgrade_state_dict)
   return TrainedRun(model, state.variables, int(metadata.get("step", int(state.step))),
                     float(metadata.get("seconds_trained", 0.0)), description)
 

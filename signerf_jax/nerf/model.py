@@ -1,8 +1,7 @@
 """The NeRF as pure functions over (model, variables): fields + sampling + volume rendering.
 
 `NerfModel` is static (hashable; it fixes every shape); `variables` is the pytree that changes:
-  {"params": {"field": ..., "proposal_0": ..., ...,     # trained by the optimizer
-              "camera_adjustments": [N, 6]},             # pose refinement only
+  {"params": {"field": ..., "proposal_0": ..., ...},    # trained by the optimizer
    "occupancy": [R, R, R] float32,                       # occupancy sampler only, not trained
    "level_weights": [L] float32,                         # coarse-to-fine training only
    "original": {"params": ..., "occupancy": ...}}        # edit regions only, frozen
@@ -46,8 +45,6 @@ PROPOSAL_LEVELS = 5
 # constant, i.e. no view dependence.
 VIEW_DEPENDENT_SH_DEGREE = 4
 DIFFUSE_SH_DEGREE = 1
-# The params entry of per-camera pose corrections (`camera.refine_rays`).
-POSE_ADJUSTMENTS = "camera_adjustments"
 
 Variables = dict[str, Any]
 
@@ -92,7 +89,7 @@ class NerfModel:
     capacity = self.capacity
     layout = grid_layout(capacity.num_levels, capacity.base_resolution,
                          capacity.finest_resolution, capacity.log2_table_size,
-                         capacity.features_per_level, capacity.hashed)
+                         capacity.features_per_level)
     embeddings = self.scene.num_images if capacity.appearance_embedding else 0
     diffuse = self.edit_region is not None and not self.region_view_dependence
     return RadianceField(layout, width=capacity.mlp_width, num_appearance_embeddings=embeddings,
@@ -164,8 +161,6 @@ def init_variables(model: NerfModel, key) -> Variables:
       "params"]}
   for index, (field, field_key) in enumerate(zip(model.proposal_fields, keys[1:])):
     params[f"proposal_{index}"] = field.init(field_key, points)["params"]
-  if model.capacity.pose_refinement:
-    params[POSE_ADJUSTMENTS] = jnp.zeros((model.scene.num_images, 6), jnp.float32)
   variables = {"params": params}
   if model.capacity.sampler == "occupancy":
     variables["occupancy"] = occupancy.initial_grid(model.capacity.occupancy_resolution)

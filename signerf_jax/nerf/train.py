@@ -22,11 +22,12 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 from jax.sharding import Mesh
 
-from signerf_jax import camera, parallel, validation
+from signerf_jax import parallel, validation
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import losses, training_data
 from signerf_jax.nerf import model as nerf_model
@@ -44,8 +45,6 @@ class TrainConfig(validation.CheckedFields):
     max_seconds: wall-clock training time budget (None = no limit): training stops there, and
       the learning-rate schedule spans it (`Trainer.progress`).
     learning_rate: peak Adam learning rate (after a linear warm-up).
-    pose_learning_rate: peak learning rate of the pose corrections (`Capacity.pose_refinement`;
-      same schedule).
     final_learning_rate: learning rate at the end of the schedule (exponential decay).
     warmup_steps: linear warm-up length.
     gradient_clip_norm: global-norm gradient clipping.
@@ -66,7 +65,6 @@ class TrainConfig(validation.CheckedFields):
   steps: PositiveInt = 5000
   max_seconds: PositiveFloat | None = None
   learning_rate: PositiveFloat = 1e-2
-  pose_learning_rate: NonNegativeFloat = 6e-4
   final_learning_rate: PositiveFloat = 1e-3
   warmup_steps: NonNegativeInt = 50
   gradient_clip_norm: PositiveFloat = 1.0
@@ -87,15 +85,8 @@ class TrainState:
 
   step: jax.Array  # int32 scalar
   variables: dict[str, Any]
-  optimizer_state: optax.OptState
+  optimizer_state: optax.OptState  # `make_optimizer`'s
   key: jax.Array  # the run's base key; step keys are fold_in(key, step)
-
-
-def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
-  """Gradient clipping and Adam's scaling; the step applies `learning_rate` itself, because the
-  schedule follows training progress, which a time budget measures in seconds, not steps."""
-  return optax.chain(optax.clip_by_global_norm(config.gradient_clip_norm),
-                     optax.scale_by_adam(b1=0.9, b2=0.99, eps=config.adam_eps))
 
 
 def learning_rate(config: TrainConfig, step, progress):
@@ -114,18 +105,64 @@ def learning_rate(config: TrainConfig, step, progress):
   return config.learning_rate * warmup * ratio**jnp.clip(progress, 0.0, 1.0)
 
 
+@dataclasses.dataclass(frozen=True)
+class ProgressSchedule:
+  """`learning_rate` as an optax stateful schedule (`optax.schedules.StatefulSchedule`): its
+  state is the int32 count of updates done (the step), and every update passes the step's
+  `progress`. Progress is an input, not a function of the count, because a time budget
+  measures it in seconds."""
+
+  config: TrainConfig
+
+  def init(self) -> jax.Array:
+    return jnp.zeros([], jnp.int32)
+
+  def update(self, count, **extra_args) -> jax.Array:
+    del extra_args
+    return optax.safe_increment(count)
+
+  def __call__(self, count, progress=0.0, **extra_args) -> jax.Array:
+    del extra_args
+    return learning_rate(self.config, count, progress)
+
+
+def make_optimizer(config: TrainConfig) -> optax.GradientTransformationExtraArgs:
+  """Global-norm clipping, Adam's scaling, then the scheduled learning rate (`ProgressSchedule`,
+  injected so the state records the rate of the last update). Each update takes the step's
+  progress: `update(gradients, state, params, progress=...)`."""
+  return optax.chain(
+      optax.clip_by_global_norm(config.gradient_clip_norm),
+      optax.scale_by_adam(b1=0.9, b2=0.99, eps=config.adam_eps),
+      optax.inject_hyperparams(optax.scale_by_learning_rate)(
+          learning_rate=ProgressSchedule(config)))
+
+
+def last_learning_rate(optimizer_state: optax.OptState) -> jax.Array:
+  """The float32 learning rate `make_optimizer`'s last update applied."""
+  return optimizer_state[-1].hyperparams["learning_rate"]
+
+
+def upgrade_state_dict(state_dict: dict[str, Any]) -> dict[str, Any]:
+  """A checkpoint's state dict (`checkpoints.read`) in the current layout: checkpoints written
+  before the learning rate was part of the optimizer hold only clipping's and Adam's states;
+  the schedule's state is their update count (the rate is recomputed at the next update)."""
+  optimizer_state = state_dict["optimizer_state"]
+  if set(optimizer_state) != {"0", "1"}:
+    return state_dict
+  count = optimizer_state["1"]["count"]
+  schedule = {"count": count, "hyperparams": {"learning_rate": np.float32(0.0)},
+              "hyperparams_states": {"learning_rate": count}, "inner_state": {}}
+  return {**state_dict, "optimizer_state": {**optimizer_state, "2": schedule}}
+
+
 def apply_gradients(config: TrainConfig, state: TrainState, gradients, progress
                     ) -> tuple[dict[str, Any], optax.OptState]:
-  """The parameters after one optimiser step on `gradients`, and the new optimiser state."""
+  """The variables after one optimiser step on `gradients` at `progress` (float32 scalar in
+  [0, 1]; `learning_rate`), and the new optimiser state."""
   params = state.variables["params"]
-  updates, optimizer_state = make_optimizer(config).update(gradients, state.optimizer_state,
-                                                           params)
-  rate = learning_rate(config, state.step, progress)
-  rates = {name: rate * (config.pose_learning_rate / config.learning_rate
-                         if name == nerf_model.POSE_ADJUSTMENTS else 1.0) for name in params}
-  params = {name: jax.tree.map(lambda param, update: param - rates[name] * update,
-                               params[name], updates[name]) for name in params}
-  return {**state.variables, "params": params}, optimizer_state
+  updates, optimizer_state = make_optimizer(config).update(
+      gradients, state.optimizer_state, params, progress=progress)
+  return {**state.variables, "params": optax.apply_updates(params, updates)}, optimizer_state
 
 
 def init_state(model: nerf_model.NerfModel, config: TrainConfig, init_variables=None
@@ -175,9 +212,7 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
         model.capacity.num_levels, progress, model.capacity.coarse_to_fine)})
 
   def loss_fn(params):
-    refined = (camera.refine_rays(rays, params[nerf_model.POSE_ADJUSTMENTS])
-               if model.capacity.pose_refinement else rays)
-    outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, refined,
+    outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, rays,
                                           render_key, training=True, background=background,
                                           surroundings=surroundings)
     ray_weights = jnp.repeat(pixel_weight, rays_per_pixel) * outputs["ray_complete"]
@@ -197,7 +232,7 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
 
   gradients, statistics = jax.grad(loss_fn, has_aux=True)(state.variables["params"])
   variables, optimizer_state = apply_gradients(config, state, gradients, progress)
-  statistics["learning_rate"] = learning_rate(config, state.step, progress)
+  statistics["learning_rate"] = last_learning_rate(optimizer_state)
   statistics["psnr"] = -10.0 * jnp.log10(jnp.maximum(statistics.pop("mse"), 1e-10))
   return TrainState(state.step + 1, variables, optimizer_state, state.key), statistics
 

@@ -78,27 +78,22 @@ class TrainingData:
                jax.tree.map(jnp.asarray, dataset.cameras), jnp.asarray(weights), alphas)
 
 
-def _pixel_rays(model: nerf_model.NerfModel, variables, cameras: camera.Cameras,
-                image_shape: tuple[int, int, int], flat_pixels) -> camera.Rays:
-  """The rays through `flat_pixels` [C] (indices into [N, H, W]) as the original NeRF saw them
-  (its pose corrections applied)."""
+def _pixel_rays(cameras: camera.Cameras, image_shape: tuple[int, int, int], flat_pixels
+                ) -> camera.Rays:
+  """The rays through the centres of `flat_pixels` [C] (indices into [N, H, W])."""
   index, row, column = jnp.unravel_index(flat_pixels, image_shape)
-  rays = camera.pixel_rays(cameras, index, column + 0.5, row + 0.5)
-  if model.capacity.pose_refinement:
-    rays = camera.refine_rays(rays, variables["original"]["params"][nerf_model.POSE_ADJUSTMENTS])
-  return rays
+  return camera.pixel_rays(cameras, index, column + 0.5, row + 0.5)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 3))
-def _crossing_chunk(model, variables, cameras, image_shape, flat_pixels):
-  return nerf_model.crosses_region(
-      model, _pixel_rays(model, variables, cameras, image_shape, flat_pixels))
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _crossing_chunk(model, cameras, image_shape, flat_pixels):
+  return nerf_model.crosses_region(model, _pixel_rays(cameras, image_shape, flat_pixels))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 3))
 def _surroundings_chunk(model, variables, cameras, image_shape, flat_pixels):
-  return nerf_model.region_surroundings(
-      model, variables, _pixel_rays(model, variables, cameras, image_shape, flat_pixels))
+  return nerf_model.region_surroundings(model, variables,
+                                        _pixel_rays(cameras, image_shape, flat_pixels))
 
 
 def _in_chunks(function, flat_pixels: np.ndarray, chunk_size: int):
@@ -121,14 +116,14 @@ def with_region_rays(data: TrainingData, model: nerf_model.NerfModel, variables,
     return data
   image_shape = tuple(data.pixel_weights.shape)
   weighted = np.flatnonzero(np.asarray(data.pixel_weights).reshape(-1) > 0).astype(np.int32)
-  inputs = (model, variables, data.cameras, image_shape)
-  crossing = (_in_chunks(functools.partial(_crossing_chunk, *inputs), weighted, 16 * chunk_size)
-              if len(weighted) else np.zeros(0, bool))
+  crossing = (_in_chunks(functools.partial(_crossing_chunk, model, data.cameras, image_shape),
+                         weighted, 16 * chunk_size) if len(weighted) else np.zeros(0, bool))
   pixels = weighted[crossing]
   if not len(pixels):
     raise InputError(f"no training pixel sees the edit region {model.edit_region}",
                      field="edit_region")
-  surroundings = _in_chunks(functools.partial(_surroundings_chunk, *inputs), pixels, chunk_size)
+  surroundings = _in_chunks(functools.partial(_surroundings_chunk, model, variables,
+                                              data.cameras, image_shape), pixels, chunk_size)
   return data.replace(region=RegionRays(jnp.asarray(pixels), jax.tree.map(jnp.asarray,
                                                                           surroundings)))
 

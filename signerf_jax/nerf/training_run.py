@@ -26,7 +26,8 @@ from signerf_jax.errors import InputError
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import Capacity, CapacityRules, derive_capacity
 from signerf_jax.nerf.scene_info import SceneInfo
-from signerf_jax.nerf.train import TrainConfig, TrainState, init_state, make_train_step
+from signerf_jax.nerf.train import (TrainConfig, TrainState, init_state, make_train_step,
+                                    upgrade_state_dict)
 from signerf_jax.nerf.training_data import TrainingData, with_region_rays
 
 MODEL_FILE = "model.json"
@@ -110,7 +111,7 @@ class Trainer:
 
   def restore(self, run_dir: str | os.PathLike) -> None:
     """Continues from the checkpoint in `run_dir` (state, seconds and samples trained)."""
-    state, metadata = checkpoints.restore(run_dir, self.state)
+    state, metadata = checkpoints.restore(run_dir, self.state, upgrade_state_dict)
     # Placed like the fresh state: host arrays would make the first step compile again.
     self.state = parallel.replicate(state, self.mesh)
     self.seconds_trained = float(metadata.get("seconds_trained", 0.0))

@@ -85,6 +85,18 @@ def test_json_round_trip():
   assert scene_info.SceneInfo.from_json(as_json).perspective == FORWARD_FACING.perspective
 
 
+def test_a_model_json_with_removed_options_loads_only_at_their_remaining_value():
+  derived = capacity.derive_capacity(LEGO_100)
+  older = {**dataclasses.asdict(derived), "hashed": True, "pose_refinement": False}
+  assert capacity.Capacity.from_json(older) == derived
+  for name, value in [("pose_refinement", True), ("hashed", False)]:
+    with pytest.raises(InputError, match=f"{name} = {value}.*no longer") as error:
+      capacity.Capacity.from_json({**older, name: value})
+    assert error.value.field == f"capacity.{name}"
+  with pytest.raises(InputError, match=r"not fields of Capacity: \['pose_refinement'\]"):
+    capacity.CapacityRules(overrides={"pose_refinement": True})
+
+
 def test_rendering_takes_its_fraction_of_the_field_samples_and_training_all():
   derived = dataclasses.replace(capacity.derive_capacity(FORWARD_FACING),
                                 proposal_samples=(48, 24), samples_per_ray=24)

@@ -133,17 +133,6 @@ def test_fine_tuning_starts_from_given_variables_and_honours_pixel_weights(spher
   assert loaded.model == trainer.model and loaded.step == 3
 
 
-def test_learning_rate_warms_up_then_decays_with_progress():
-  config = dataclasses.replace(SMALL_CONFIG, learning_rate=1e-2, final_learning_rate=1e-4,
-                               warmup_steps=10)
-  rate = lambda step, progress: float(train.learning_rate(config, step, progress))
-  assert rate(0, 0.0) == pytest.approx(1e-3)  # 1/10 of the way through the warm-up
-  assert rate(9, 0.0) == pytest.approx(1e-2)
-  assert rate(500, 0.5) == pytest.approx(1e-3, rel=1e-5)  # halfway: the geometric mean
-  assert rate(500, 1.0) == pytest.approx(1e-4, rel=1e-5)
-  assert rate(500, 7.0) == pytest.approx(1e-4, rel=1e-5)  # clamped past the end
-
-
 @pytest.mark.slow
 def test_a_time_budget_is_what_the_schedule_spans(sphere):
   """With max_seconds, progress is the larger of the steps and the seconds fractions, so a run
