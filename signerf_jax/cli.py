@@ -26,8 +26,10 @@ from signerf_jax.errors import InputError
 
 # name -> (module implementing it, one-line help). Stages add themselves here.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "synthesize": ("signerf_jax.data.commands",
+    "synthesize": ("signerf_jax.data.commands.synthesize",
                    "write a synthetic scene with ground-truth depth and object masks"),
+    "process": ("signerf_jax.data.commands.process",
+                "recover the camera poses of photos or a video (COLMAP) and write a dataset"),
     "train": ("signerf_jax.nerf.commands.train", "train (or resume) a NeRF on a dataset"),
     "render": ("signerf_jax.nerf.commands.render",
                "render a trained NeRF's views (PNG, depth EXR) and a camera-path video"),
@@ -58,6 +60,10 @@ WRITES: dict[str, str] = {
     "synthesize": "Writes OUT: a nerfstudio dataset (transforms.json, images/, depths/ as EXR "
                   "z-depth, object_masks/), scene.json (the scene and how it was made) and "
                   "config.gin.",
+    "process": "Writes OUT: a nerfstudio dataset: images/ (upright photos or a video's sharpest "
+               "frames), images_2/, images_4/, images_8/, colmap/ (database.db, which a rerun "
+               "reuses, and sparse/0/, the model), transforms.json (the registered images) and "
+               "process.json (the summary, also printed as one JSON line). A rerun resumes.",
     "train": "Writes RUN: config.gin (the gin bindings, which a resume reads back), model.json, "
              "checkpoint.msgpack, and after training eval.json and eval/ (held-out renders and "
              "depth maps). A rerun resumes.",
@@ -103,7 +109,7 @@ DATA_HELP = f"dataset directory ({DATA_FORMATS}; the format is detected)"
 KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "demo", "view")
 
 # Commands a rerun resumes (checkpoints and finished stages are kept): an interrupted one says so.
-RESUMABLE_COMMANDS = ("train", "edit", "update", "finetune", "demo")
+RESUMABLE_COMMANDS = ("process", "train", "edit", "update", "finetune", "demo")
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

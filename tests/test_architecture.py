@@ -145,7 +145,8 @@ def test_upward_and_relative_imports_are_found():
 
 @pytest.mark.parametrize("module, edge", [
     ("signerf_jax.cli", True), ("signerf_jax.configs", True), ("signerf_jax.editing.demo", True),
-    ("signerf_jax.data.commands", True), ("signerf_jax.nerf.commands", True),
+    ("signerf_jax.data.commands.synthesize", True), ("signerf_jax.data.commands.process", True),
+    ("signerf_jax.nerf.commands", True),
     ("signerf_jax.editing.commands.sweeps", True), ("signerf_jax.default_model.samples", True),
     ("signerf_jax.files", False), ("signerf_jax.nerf.train", False),
     ("signerf_jax.editing.config", False)])

@@ -67,7 +67,14 @@ CONCEPTS: dict[str, tuple[str, str]] = {
     "--skip_eval": ("no evaluation after training", "evaluate"),
     "--start_over": ("train afresh", "afresh"),
     "--split": ("which dataset views", "views"),
-    "--video": ("a camera-path video", "video"),
+    "--video": ("a video: render's camera-path video, or the capture process reads", "video"),
+    "--images": ("a folder of photos", "photos"),
+    "--max_frames": ("frames kept from a video", "frames kept"),
+    "--camera_model": ("the lens model", "distortion"),
+    "--camera_per_image": ("a camera per image", "own camera"),
+    "--matching": ("the image pairs matched", "pairs"),
+    "--max_image_size": ("the image size features are found at", "pixels wide"),
+    "--max_features": ("features per image", "features per image"),
     "--frames": ("the video's length", "video"),
     "--chunk_size": ("rays rendered at once", "rays rendered at once"),
     "--supersampling": ("rays per pixel", "N x N rays"),
@@ -91,7 +98,7 @@ RENAMED = {
 }
 
 # The commands that fill --out (nothing else takes it).
-OUT_COMMANDS = ("synthesize", "render", "demo")
+OUT_COMMANDS = ("synthesize", "process", "render", "demo")
 
 
 def subparser(command: str) -> argparse.ArgumentParser:

@@ -28,7 +28,7 @@ import colorsys
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import numpy as np
 import trimesh
@@ -43,6 +43,16 @@ from signerf_jax.validation import (Color, NonNegativeFloat, NonNegativeInt, Pos
 SHAPES = ("sphere", "box", "cylinder", "mesh")
 PRIMITIVE_SHAPES = SHAPES[:3]
 OBJECT_TEXTURES = ("blobs", "stripes")
+GROUND_TEXTURES = ("checker", "speckle")
+# The speckle: sinusoids along fixed random directions, up to SPECKLE_OCTAVES octaves above the
+# base frequency, random phases. Unlike the periodic patterns, no two places look alike, which
+# feature matching (`signerf process`) needs.
+SPECKLE_WAVES, SPECKLE_OCTAVES = 48, 3
+_SPECKLE_RANDOM = np.random.default_rng(20240617)
+SPECKLE_DIRECTIONS = _SPECKLE_RANDOM.normal(size=(SPECKLE_WAVES, 3))
+SPECKLE_DIRECTIONS /= np.linalg.norm(SPECKLE_DIRECTIONS, axis=1, keepdims=True)
+SPECKLE_FREQUENCY_FACTORS = 2.0 ** _SPECKLE_RANDOM.uniform(0, SPECKLE_OCTAVES, SPECKLE_WAVES)
+SPECKLE_PHASES = _SPECKLE_RANDOM.uniform(0, 2 * np.pi, SPECKLE_WAVES)
 # The shared meshes (../shared/data/meshes next to the repository, or $SIGNERF_SHARED_DATA);
 # this file is <repository>/signerf_jax/data/synthetic.py.
 DEFAULT_MESH_DIRECTORY = str(Path(os.environ.get(
@@ -64,7 +74,8 @@ class SceneObject:
     shape: one of SHAPES.
     object_to_world: [4, 4] affine map from the canonical shape (see `raycast`) to the scene.
     color: [3] base albedo.
-    texture: "checker" (ground), "blobs" or "stripes", evaluated in canonical coordinates.
+    texture: "checker" or "speckle" (ground), "blobs" or "stripes", evaluated in canonical
+      coordinates.
     texture_axis: [3] unit direction of the stripes.
     texture_frequency: angular frequency of the pattern in canonical units.
     footprint_center, footprint_radius: [2] and float, the disc the object covers on the ground.
@@ -135,6 +146,9 @@ def _texture(shape: SceneObject, points: np.ndarray) -> np.ndarray:
   k = shape.texture_frequency
   if shape.texture == "checker":
     signal = np.sin(k * points[:, 0]) * np.sin(k * points[:, 1]) * 4.0
+  elif shape.texture == "speckle":
+    waves = np.sin(k * SPECKLE_FREQUENCY_FACTORS * (points @ SPECKLE_DIRECTIONS.T) + SPECKLE_PHASES)
+    signal = 3.0 * waves.mean(-1) * np.sqrt(SPECKLE_WAVES / 2)  # about unit variance, times 3
   elif shape.texture == "stripes":
     signal = 2.0 * np.sin(k * points @ shape.texture_axis)
   else:
@@ -240,6 +254,8 @@ class SceneSettings(validation.CheckedFields):
     object_radius_range: (min, max) radius of each object's footprint on the ground.
     free_spot_radius: radius of the reserved empty disc on the ground.
     texture_frequency, ground_texture_frequency: pattern frequencies (canonical units).
+    ground_texture: the ground's pattern, "checker" or "speckle" (aperiodic: what feature
+      matching needs to recover the cameras).
     light_direction: direction towards the light; ambient: its ambient share in [0, 1].
     background_color: [3] RGB of the (bounded) background.
   """
@@ -253,6 +269,7 @@ class SceneSettings(validation.CheckedFields):
   free_spot_radius: NonNegativeFloat = 0.3
   texture_frequency: NonNegativeFloat = 5.0
   ground_texture_frequency: NonNegativeFloat = 12.0
+  ground_texture: Literal[GROUND_TEXTURES] = "checker"
   light_direction: Vector3 = (0.45, -0.35, 0.82)
   ambient: UnitInterval = 0.35
   background_color: Color = (1.0, 1.0, 1.0)
@@ -362,14 +379,15 @@ def _random_meshes(rng: np.random.Generator, footprints: _Footprints,
 
 
 def _ground(settings: SceneSettings) -> SceneObject:
-  """The ground slab, object 0: [-h, h]^2 x [-thickness, 0], checkered."""
+  """The ground slab, object 0: [-h, h]^2 x [-thickness, 0], with `settings.ground_texture`."""
   ground_half_size = settings.ground_half_size
   return SceneObject(
       object_id=0, shape="box",
       object_to_world=affine(np.diag([ground_half_size, ground_half_size,
                                        settings.ground_thickness / 2]),
                              [0.0, 0.0, GROUND_HEIGHT - settings.ground_thickness / 2]),
-      color=np.asarray(GROUND_COLOR), texture="checker", texture_axis=np.array([0.0, 0, 1]),
+      color=np.asarray(GROUND_COLOR), texture=settings.ground_texture,
+      texture_axis=np.array([0.0, 0, 1]),
       texture_frequency=settings.ground_texture_frequency, footprint_center=np.zeros(2),
       footprint_radius=ground_half_size * np.sqrt(2))
 
