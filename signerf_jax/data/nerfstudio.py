@@ -216,8 +216,9 @@ def _image_path(root: Path, relative: str, source: Path, field: str) -> Path:
   for suffix in IMAGE_SUFFIXES:
     candidate = path.with_name(path.name + suffix)
     if candidate.is_file():
-      # The file found may be a symlink leading out of the folder where `path` did not.
-      return files.contained_path(root, candidate, source, field)
+      # The file found may be a symlink leading out of the folder where `path` did not. It is
+      # checked relative to `root` again: joined to a relative `root`, `candidate` would repeat it.
+      return files.contained_path(root, os.path.relpath(candidate, root), source, field)
   return path
 
 

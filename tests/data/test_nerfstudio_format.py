@@ -1,5 +1,6 @@
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -290,6 +291,29 @@ def test_an_extensionless_file_path_found_through_a_symlink_out_is_refused(tmp_p
   with pytest.raises(InputError, match="points outside") as error:
     load_dataset(root, split="all")
   assert error.value.field == "frames[2].file_path"
+
+
+@pytest.mark.parametrize("absolute", [False, True])
+def test_extensionless_file_paths_load_from_a_relative_dataset_folder(tmp_path, dataset_factory,
+                                                                     monkeypatch, absolute):
+  # As ../shared/data/stitch, whose file paths have no extension, given as a relative path.
+  root, path, meta = written_scene(tmp_path, dataset_factory)
+  for frame in meta["frames"]:
+    frame["file_path"] = frame["file_path"].removesuffix(".png")
+    if absolute:
+      frame["file_path"] = str(root.resolve() / frame["file_path"])
+  files.write_json(path, meta)
+  # Two folders deep: joining such a relative folder to itself leads elsewhere.
+  (tmp_path / "deep").mkdir()
+  root = root.rename(tmp_path / "deep" / "scene")
+  if absolute:
+    for frame in meta["frames"]:
+      frame["file_path"] = frame["file_path"].replace(str(path.parent.resolve()), str(root))
+    files.write_json(root / path.name, meta)
+  (tmp_path / "elsewhere").mkdir()
+  monkeypatch.chdir(tmp_path / "elsewhere")
+  relative = Path("..") / "deep" / "scene"
+  assert load_dataset(relative, split="all").num_images == len(meta["frames"])
 
 
 def test_a_split_file_naming_a_file_outside_is_refused_naming_that_file(tmp_path,
