@@ -27,10 +27,15 @@ Quality comes from each edit's evaluation (background PSNR, consistency, prompt 
 shape IoU, and the edited NeRF's fit and solidity: `sweeps.edit_quality`), time is the edit's
 stages' wall time without the shared NeRF and the evaluation.
 
-Writes into --results DIR (default outputs/experiments/) ablations.json (every variant's
-bindings, quality and stage seconds), ablations.gin (the common settings) and ablations.png
-(one row per ablation: each quality number against seconds, one point per variant). --smoke adds
-gin_configs/ablations_smoke.gin: tiny budgets, a few minutes, meaningless numbers.
+The NeRFs train for step counts (gin_configs/ablations.gin), not seconds, so that the result
+does not depend on the machine's speed: a rerun gives the same numbers, only the seconds differ
+(tests/editing/test_ablation_reproducible.py).
+
+Writes into --results DIR (default outputs/experiments/) ablations.json (the machine and the
+code's commit, the common gin settings and every seed, each variant's bindings, quality and
+stage seconds), ablations.gin (the common settings) and ablations.png (one row per ablation:
+each quality number against seconds, one point per variant). --smoke adds
+gin_configs/ablations_smoke.gin: few steps, a few minutes, meaningless numbers.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ from signerf_jax.editing.commands.sweeps import Variant
 from signerf_jax.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
 import results_dir  # pylint: disable=wrong-import-position
 
@@ -217,9 +223,10 @@ def run_ablations(names: list[str], gin_files: list[str], gin_params: list[str],
   scene = demo.ensure_scene(out / "scene", settings.scene_seed)
   bindings = demo.edit_bindings(out / "scene", scene, settings, settings.prompt, model)
   sweep = sweeps.Sweep(out, gin_files, bindings + gin_params, progress, log)
-  result: dict[str, Any] = {"gin_files": gin_files, "model": model,
-                            "scene": str((out / "scene").resolve()), "prompt": settings.prompt,
-                            "original_nerf": sweep.train_original(), "ablations": {}}
+  result: dict[str, Any] = {"machine": machine.record(), "gin_files": gin_files,
+                            "model": model, "scene": str((out / "scene").resolve()),
+                            "prompt": settings.prompt, "original_nerf": sweep.train_original(),
+                            "ablations": {}}
   for name, ablation in ablations(config).items():
     if name not in names:
       continue
@@ -233,6 +240,9 @@ def run_ablations(names: list[str], gin_files: list[str], gin_params: list[str],
       entry["points"] = propagation_points(entry["variants"][0])
     result["ablations"][name] = entry
   configs.parse_gin(gin_files, sweep.bindings)
+  # The common settings; each variant's bindings on top are in its entry.
+  result.update(machine.settings_record(gin.config_str(), demo=settings,
+                                        edit=commands.edit_settings()))
   return result, gin.config_str()
 
 

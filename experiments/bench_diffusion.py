@@ -317,7 +317,7 @@ def main(argv=None) -> int:
   results["machine"] = {
       "processor": platform.processor() or platform.machine(), "cpu": machine.cpu_model(),
       "cpu_count": os.cpu_count(),
-      "jax": jax.__version__,
+      "jax": jax.__version__, **machine.code_version(),
       "load_average_before_after": [load_before[0], os.getloadavg()[0]],
       "process_peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
       "note": "JAX and torch runs interleave, so other jobs (see the load averages) slow both",

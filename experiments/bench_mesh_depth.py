@@ -35,6 +35,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.geometry import mesh as mesh_lib
 from signerf_jax.geometry import mesh_depth
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 REPOSITORY = Path(__file__).resolve().parent.parent
@@ -153,8 +154,9 @@ def main() -> None:
   results_dir.add_argument(parser)
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
+  measured_on = machine.record()
   try:
-    result = benchmark()
+    result = {"machine": measured_on, **benchmark()}
   except InputError as error:  # e.g. the shared data is absent
     raise SystemExit(f"bench_mesh_depth: {error} (set benchmark.mesh_path)") from None
   files.write_json(args.results / "bench_mesh_depth.json", result)

@@ -29,6 +29,7 @@ from signerf_jax.editing import crops, generation, update
 from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.sheet import SheetLayout
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 
@@ -91,7 +92,8 @@ def main() -> None:
   files.write_json(args.results / f"{args.name}.json", {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),
                   "cpu_count": os.cpu_count(), "jax_devices": str(jax.devices()),
-                  "load_average_before": load_before, "load_average_after": os.getloadavg()},
+                  "load_average_before": load_before, "load_average_after": os.getloadavg(),
+                  **machine.code_version()},
       "model": "shipped", "tile_size": tile, "sheet": "2 x 3",
       "sheet_pixels": [2 * tile, 3 * tile], "options": dataclasses.asdict(options),
       "views": args.views, "results": results})

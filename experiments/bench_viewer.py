@@ -30,6 +30,7 @@ from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.viewer import progressive
 from signerf_jax.viewer.cameras import pose_of_camera
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 CANVAS_ASPECT = 16 / 9
@@ -93,7 +94,8 @@ def main() -> None:
   files.write_json(args.results / f"{args.name}.json", {
       "machine": {"platform": platform.platform(), "processor": platform.processor(),
                   "cpu_count": os.cpu_count(), "jax_devices": str(jax.devices()),
-                  "load_average_before": load_before, "load_average_after": os.getloadavg()},
+                  "load_average_before": load_before, "load_average_after": os.getloadavg(),
+                  **machine.code_version()},
       "heights": list(progressive.HEIGHTS), "chunk_size": progressive.CHUNK_SIZE,
       "canvas_aspect": CANVAS_ASPECT, "runs": results})
   files.write_image(args.results / f"{args.name}.png", figures.image_grid(rows, labels))

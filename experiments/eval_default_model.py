@@ -44,6 +44,7 @@ from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plotting  # pylint: disable=wrong-import-position
+from machine import code_version  # pylint: disable=wrong-import-position
 import results_dir  # pylint: disable=wrong-import-position
 
 REPOSITORY = Path(__file__).resolve().parent.parent
@@ -51,11 +52,11 @@ DEFAULT_DATA = REPOSITORY / "outputs" / "default_model_data"
 
 
 def machine(load_at_start) -> dict:
-  """CPUs, devices and the 1, 5 and 15 minute load averages at the start and now."""
+  """CPUs, devices, the 1, 5 and 15 minute load averages at the start and now, the code's commit."""
   return {"cpu_count": os.cpu_count(), "usable_cpus": len(os.sched_getaffinity(0)),
           "load_average_at_start": list(load_at_start), "load_average_at_end": list(
               os.getloadavg()), "devices": [str(device) for device in jax.devices()],
-          "jax": jax.__version__}
+          "jax": jax.__version__, **code_version()}
 
 
 def samples_figure(singles: evaluation_generation.ViewInputs, single_images: dict,

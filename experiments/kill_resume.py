@@ -33,6 +33,7 @@ import numpy as np
 
 from signerf_jax import checkpoints, files
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 STEPS = 400
@@ -134,7 +135,7 @@ def main() -> None:
       "temporary_files_left": leftovers,
       "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                   "load_average_at_start": load_at_start,
-                  "load_average_at_end": os.getloadavg()},
+                  "load_average_at_end": os.getloadavg(), **machine.code_version()},
   }
   args.results.mkdir(parents=True, exist_ok=True)
   files.write_json(args.results / "kill_resume.json", result)

@@ -1,13 +1,18 @@
-"""The machine a benchmark ran on, recorded beside its numbers."""
+"""What a result came from, recorded beside its numbers: the machine, the code's commit, and
+(`settings_record`) the configuration and the seeds."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
+import subprocess
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import jax
+
+REPOSITORY_ROOT = Path(__file__).resolve().parent.parent
 
 
 def cpu_model() -> str:
@@ -25,8 +30,60 @@ def cpu_model() -> str:
           f"model {fields.get('model', '?')}")
 
 
+def _git(*arguments: str) -> subprocess.CompletedProcess | None:
+  try:
+    return subprocess.run(["git", *arguments], cwd=REPOSITORY_ROOT, capture_output=True,
+                          text=True, timeout=30, check=False)
+  except (OSError, subprocess.TimeoutExpired):
+    return None
+
+
+def code_version() -> dict[str, Any]:
+  """{"commit": the repository's HEAD, "uncommitted_changes": whether tracked files differ from
+  it}; both None outside a git checkout (an installed wheel, no git). Read-only: `git diff`
+  does not rewrite the index, as `git status` may."""
+  head = _git("rev-parse", "HEAD")
+  if head is None or head.returncode != 0:
+    return {"commit": None, "uncommitted_changes": None}
+  # Exit code 1: tracked files differ from HEAD (untracked files do not count).
+  differs = _git("diff", "--quiet", "HEAD", "--")
+  return {"commit": head.stdout.strip(),
+          "uncommitted_changes": None if differs is None else differs.returncode == 1}
+
+
 def record(**extra: Any) -> dict[str, Any]:
-  """Platform, CPU model and count, JAX version, `extra` fields and the 1/5/15-minute load
-  averages now (call it when the measurement starts)."""
+  """Platform, CPU model and count, JAX version, the code's commit (`code_version`), `extra`
+  fields and the 1/5/15-minute load averages now (call it when the measurement starts)."""
   return {"platform": platform.platform(), "cpu": cpu_model(), "cpu_count": os.cpu_count(),
-          "jax": jax.__version__, **extra, "load_average_at_start": os.getloadavg()}
+          "jax": jax.__version__, **code_version(), **extra,
+          "load_average_at_start": os.getloadavg()}
+
+
+def seeds(settings: Any, path: str = "") -> dict[str, Any]:
+  """Every seed in `settings` (dataclasses, mappings, tuples and lists of them, nested): the
+  fields named `seed`, `seeds` or `..._seed`, by their path, e.g. {"training.original.seed": 0}."""
+  if dataclasses.is_dataclass(settings) and not isinstance(settings, type):
+    items = [(field.name, getattr(settings, field.name))
+             for field in dataclasses.fields(settings)]
+  elif isinstance(settings, Mapping):
+    items = list(settings.items())
+  elif isinstance(settings, (tuple, list)):
+    items = list(enumerate(settings))
+  else:
+    return {}
+  found: dict[str, Any] = {}
+  for name, value in items:
+    name = str(name)
+    if name in ("seed", "seeds") or name.endswith("_seed"):
+      found[path + name] = list(value) if isinstance(value, tuple) else value
+    else:
+      found.update(seeds(value, f"{path}{name}."))
+  return found
+
+
+def settings_record(gin_config: str, **settings: Any) -> dict[str, Any]:
+  """The configuration a result ran with: {"gin_config": the gin bindings in effect
+  (`gin.config_str()`), "seeds": every seed in `settings` (`seeds`), by keyword then path}."""
+  return {"gin_config": gin_config,
+          "seeds": {f"{name}.{path}": seed for name, part in settings.items()
+                    for path, seed in seeds(part).items()}}

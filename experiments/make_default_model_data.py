@@ -33,6 +33,7 @@ from signerf_jax import configs, files
 from signerf_jax.default_model import dataset_builder, samples
 from signerf_jax.metrics import colors
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 EXTRAPOLATE_TO = {"sheets": 4000, "singles": 8000}
@@ -122,7 +123,7 @@ def main(argv=None) -> int:
       "ground_truth_dominant_color": color_check(directory),
       "object_frame_coverage": frame_coverage(directory),
       "machine": {"cpu_count": os.cpu_count(), "shared_with_other_jobs": True,
-                  "load_average_after": os.getloadavg()[0]},
+                  "load_average_after": os.getloadavg()[0], **machine.code_version()},
       "gin_config": gin.config_str(),
   }
   output = Path(args.output or args.results / "default_model_data.json")

@@ -29,6 +29,7 @@ from signerf_jax.geometry import mesh_depth
 from signerf_jax.geometry import primitives
 from signerf_jax.geometry import selection
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import results_dir  # experiments/results_dir.py (this script's directory is on sys.path)
 
 
@@ -116,7 +117,7 @@ def main() -> None:
   results_dir.add_argument(parser)
   args = parser.parse_args()
   configs.parse_gin(args.gin_file, args.gin_param)
-  result = measure()
+  result = {"machine": machine.record(), **measure()}
   files.write_json(args.results / "measure_sheet_crops.json", result)
   files.write_text(args.results / "measure_sheet_crops.gin", gin.operative_config_str())
   for name, numbers in result["configurations"].items():

@@ -50,6 +50,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.metrics import solidity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
 import results_dir  # pylint: disable=wrong-import-position
 
@@ -178,7 +179,7 @@ def main(argv=None) -> int:
   start = time.perf_counter()
   gin_files = ["nerf_consistency", *(["nerf_consistency_smoke"] if args.smoke else []),
                *args.gin_file]
-  results = {}
+  results, measured_on = {}, machine.record()
   try:
     for scene in args.scenes:
       sweep = scene_sweep(scene, Path(args.out) / scene, gin_files, args.gin_param,
@@ -188,7 +189,7 @@ def main(argv=None) -> int:
     print(f"nerf_consistency: error: {error}", file=sys.stderr)
     return 2
   output = Path(args.results) / "nerf_consistency.json"
-  files.write_json(output, {"gin_files": gin_files, "scenes": results,
+  files.write_json(output, {"machine": measured_on, "gin_files": gin_files, "scenes": results,
                             "seconds": time.perf_counter() - start})
   files.write_image(output.with_suffix(".png"), figure(results))
   print(f"nerf_consistency: {', '.join(args.scenes)} in {time.perf_counter() - start:.0f} s -> "

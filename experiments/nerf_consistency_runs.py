@@ -31,6 +31,7 @@ from signerf_jax import files
 from signerf_jax.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 import nerf_consistency  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
 import results_dir  # pylint: disable=wrong-import-position
@@ -113,6 +114,7 @@ def main(argv=None) -> int:
   output = Path(args.output or args.results / "nerf_consistency_runs.json")
   files.write_json(output, {"what": "experiments/nerf_consistency_runs.py over stored runs",
                             "date": datetime.date.today().isoformat(),
+                            **machine.code_version(),
                             "settings": settings})
   files.write_image(output.with_suffix(".png"), figure(settings))
   for name, setting in settings.items():

@@ -6,14 +6,16 @@
         --controlnet DIR --edit edits/field_cow --proxy cow.obj --on_ground X Y Z --size S
 
 runs `signerf edit` (every flag of it applies) with gin_configs/paper_scenes.gin (what all scenes
-share: 30k NeRF steps, the 2 x 3 sheet, 512 px tiles) and gin_configs/paper_scenes/SCENE.gin
-(the table's denoising strength, ControlNet scale and guidance per iteration, the second
-iteration, the prompt, box or proxy selection). The dataset, the model and the selection are the
-user's: parsing fails, naming the binding, until they are given. Rerunning resumes.
+share: 30k NeRF steps and no time budget, the 2 x 3 sheet, 512 px tiles) and
+gin_configs/paper_scenes/SCENE.gin (the table's denoising strength, ControlNet scale and guidance
+per iteration, the second iteration, the prompt, box or proxy selection). The dataset, the model
+and the selection are the user's: parsing fails, naming the binding, until they are given.
+Rerunning resumes.
 
-Writes into --results DIR (default outputs/experiments/) paper_scenes_SCENE.json (the evaluation's
-metrics, the generation settings of each iteration, the seconds of every stage), .gin (the edit's
-full configuration) and .png (the before/after renders above the reference sheet).
+Writes into --results DIR (default outputs/experiments/) paper_scenes_SCENE.json (the machine
+and the code's commit, the gin settings and every seed, the evaluation's metrics, the generation
+settings of each iteration, the seconds of every stage), .gin (the edit's full configuration)
+and .png (the before/after renders above the reference sheet).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from signerf_jax.editing.config import as_json
 from signerf_jax.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
 import results_dir  # pylint: disable=wrong-import-position
 
@@ -55,6 +58,7 @@ def main(argv=None) -> int:
   commands.add_edit_arguments(parser)
   args = parser.parse_args(argv)
   args.gin_file = scene_gin_files(args.scene) + args.gin_file
+  measured_on = machine.record()
   try:
     edit, seconds = commands.run_stages("edit", args)
   except InputError as error:
@@ -65,7 +69,9 @@ def main(argv=None) -> int:
   summary = sweeps.summarize_edit(edit)
   output = Path(args.results) / f"paper_scenes_{args.scene}.json"
   files.write_json(output, {
-      "scene": args.scene, "gin_files": args.gin_file, "seconds": seconds, **summary,
+      "scene": args.scene, "machine": measured_on, "gin_files": args.gin_file,
+      **machine.settings_record(gin.config_str(), edit=edit.settings),
+      "seconds": seconds, **summary,
       "generation": {f"iteration_{iteration}": as_json(edit.generation_options(iteration))
                      for iteration in range(1, final + 1)},
       "metrics": files.read_json(evaluation / "metrics.json")})

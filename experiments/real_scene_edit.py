@@ -39,6 +39,7 @@ from signerf_jax.editing.config import DEFAULT_MODEL_DIR
 from signerf_jax.editing.commands import sweeps
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine  # pylint: disable=wrong-import-position
 import plotting  # pylint: disable=wrong-import-position
 import results_dir  # pylint: disable=wrong-import-position
 
@@ -121,7 +122,7 @@ def main() -> None:
                            "full_frames": edit_quality(full_frames)},
       "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                   "load_average_at_start": load_at_start,
-                  "load_average_at_end": os.getloadavg()},
+                  "load_average_at_end": os.getloadavg(), **machine.code_version()},
   }
   args.results.mkdir(parents=True, exist_ok=True)
   files.write_json(args.results / "real_scene_edit.json", result)

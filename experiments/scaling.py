@@ -17,8 +17,8 @@ The driver then checks that every device count edits the same images and trains 
 losses at every step (to the tolerances below; the parameters' largest difference is reported
 too), and with `scaling.local_processes = P > 0`
 runs the multi-host entry point as P processes on 127.0.0.1 (one CPU device each), checked the
-same way. Writes scaling.json, scaling.gin and scaling.png into --results DIR (default
-outputs/experiments/).
+same way. Writes scaling.json (with the machine, the code's commit, the gin settings and every
+seed), scaling.gin and scaling.png into --results DIR (default outputs/experiments/).
 
 Multi-host (one process per host; HOST:PORT is process 0's, reachable from every host):
 
@@ -346,8 +346,10 @@ def probe_devices() -> tuple[str, int]:
 def run_driver(config: ScalingConfig, args) -> dict[str, Any]:
   backend, available = probe_devices()
   result: dict[str, Any] = {
-      "machine": machine.record(backend=backend),
-      "config": dataclasses.asdict(config), "device_counts": {}}
+      "machine": machine.record(backend=backend), "config": dataclasses.asdict(config),
+      **machine.settings_record(gin.config_str(), scaling=config,
+                                library=LibrarySettings.from_gin()),
+      "device_counts": {}}
   if backend == "cpu":
     result["note"] = (f"CPU: N devices are the same {os.cpu_count()} cores split by "
                       "--xla_force_host_platform_device_count=N, so throughput cannot grow "

@@ -32,6 +32,7 @@ from flax import traverse_util
 from signerf_jax import configs, files
 from signerf_jax.default_model import export, model, stages, training, training_data
 
+import machine  # experiments/machine.py (this script's directory is on sys.path)
 import plotting  # experiments/plotting.py (this script's directory is on sys.path)
 import results_dir
 
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
   parser.add_argument("--output", metavar="JSON",
                       help="the json to write (default: DIR/default_model_training.json)")
   args = parser.parse_args(argv)
-  start = time.monotonic()
+  start, measured_on = time.monotonic(), machine.record()
   configs.parse_gin(args.gin_file or ["default_model"], args.gin_param)
   data = training_data.load_split(args.data, "train")
   budget = training.RunBudget(deadline=start + 60 * args.max_minutes,
@@ -116,7 +117,8 @@ def main(argv=None) -> int:
   trained = stages.train(args.run, data, model.Architecture(), budget, initial=initial)
   configs.save_gin_config(args.run)
 
-  result = {"data": args.data, "run": args.run, "init_from": args.init_from,
+  result = {"machine": measured_on, "data": args.data, "run": args.run,
+            "init_from": args.init_from,
             "complete": trained.complete,
             "wall_seconds_this_call": time.monotonic() - start, "stages": {}}
   for stage, history in trained.histories.items():

@@ -65,7 +65,8 @@ WRITES: dict[str, str] = {
                "reuses, and sparse/0/, the model), transforms.json (the registered images) and "
                "process.json (the summary, also printed as one JSON line). A rerun resumes.",
     "train": "Writes RUN: config.gin (the gin bindings, which a resume reads back), model.json, "
-             "checkpoint.msgpack, and after training eval.json and eval/ (held-out renders and "
+             "checkpoint.msgpack, schedule.json (the schedule's progress at each step, which "
+             "--replay reads), and after training eval.json and eval/ (held-out renders and "
              "depth maps). A rerun resumes.",
     "render": "Writes OUT (default RUN/renders): SPLIT/<view>.png, .depth.exr, .depth.png and "
               ".accumulation.png, and with --video video.mp4.",

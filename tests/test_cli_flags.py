@@ -66,6 +66,7 @@ CONCEPTS: dict[str, tuple[str, str]] = {
     "--scene_radius": ("that region's half-side", "half-side"),
     "--skip_eval": ("no evaluation after training", "evaluate"),
     "--start_over": ("train afresh", "afresh"),
+    "--replay": ("train again what a run trained, step for step", "train again"),
     "--split": ("which dataset views", "views"),
     "--video": ("a video: render's camera-path video, or the capture process reads", "video"),
     "--images": ("a folder of photos", "photos"),

@@ -216,8 +216,7 @@ def _image_path(root: Path, relative: str, source: Path, field: str) -> Path:
   for suffix in IMAGE_SUFFIXES:
     candidate = path.with_name(path.name + suffix)
     if candidate.is_file():
-      # The file found may be a symlink leading out of the folder where `path` did not. It is
-      # checked relative to `root` again: joined to a relative `root`, `candidate` would repeat it.
+      # It may be a symlink out where `path` was not (relative: `root` is in `candidate`).
       return files.contained_path(root, os.path.relpath(candidate, root), source, field)
   return path
 

@@ -82,6 +82,10 @@ class EditConfig(validation.CheckedFields):
     second_sheet: the sheet recipe of the second iteration ("": str(seed)).
     strict_prompt: a prompt word the model's tokenizer does not know is an error (by default
       a warning naming the words it knows).
+    replay: an earlier edit directory whose NeRF trainings this one repeats step for step: each
+      training is given the progress its counterpart's schedule had at each step (its
+      schedule.json), so a time-budgeted edit repeats bit for bit with the same settings (give
+      its config.gin too); "" trains as the budgets say.
     diffusion_precision: "float32", or "bfloat16": the diffusion model's weights stored and its
       matmuls and convolutions computed in bfloat16 (float32 accumulation). On CPUs with bf16
       instructions (e.g. AVX512_BF16) sampling is faster, with the shipped model and SD-sized
@@ -103,6 +107,7 @@ class EditConfig(validation.CheckedFields):
   second_iteration: bool = False
   second_sheet: str = ""
   strict_prompt: bool = False
+  replay: str = ""
   diffusion_precision: Literal["float32", "bfloat16"] = "float32"
 
   def __post_init__(self):

@@ -210,7 +210,7 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
              init_variables, config: train.TrainConfig, loss_settings: FinetuneLosses,
              lpips_params=None, edited_bounds=None,
              data_options: dict[str, Any] | None = None,
-             progress: bool = True) -> FinetuneTrainer:
+             progress: bool = True, replay_progress=None) -> FinetuneTrainer:
   """Fine-tunes `init_variables` of `model` on `dataset` into `run_dir` (resumed if it holds a
   checkpoint); a fresh optimiser state, as the paper re-initialises its optimisers.
 
@@ -223,6 +223,8 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
     lpips_params: `load_lpips(...)` when `loss_settings.uses_lpips`.
     edited_bounds: [2, 3] box around the edited region, kept sampled (see the module docstring).
     data_options: how the data was loaded, recorded in model.json.
+    replay_progress: [S] float32 progress per step to train with instead of `config`'s steps
+      and time budget (`training_run.train`'s).
   """
   if loss_settings.uses_lpips:
     if lpips_params is None:
@@ -233,11 +235,14 @@ def finetune(dataset: Dataset, run_dir: str | os.PathLike, *, model: nerf_model.
                        f"{min(dataset.height, dataset.width)}, got {size}",
                        field="FinetuneConfig.patch_size")
   run_dir = Path(run_dir)
+  if replay_progress is not None:
+    config = dataclasses.replace(config, steps=len(replay_progress), max_seconds=None)
   trainer = FinetuneTrainer(model, config, training_data.TrainingData.from_dataset(dataset),
                             train.init_state(model, config, init_variables),
                             loss_settings=loss_settings, lpips_params=lpips_params,
                             editable_cells=None if edited_bounds is None
-                            else region_cells(model, edited_bounds))
+                            else region_cells(model, edited_bounds),
+                            replay_progress=replay_progress)
   with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", dataset.root),)):
     if checkpoints.has_checkpoint(run_dir):
       trainer.restore(run_dir)

@@ -4,8 +4,12 @@ A run directory holds:
   config.gin          the gin bindings, written by the command that parsed them (not here)
   model.json          scene geometry, capacity and where the data came from
   checkpoint.msgpack  the latest TrainState plus step / seconds trained (`checkpoints`)
+  schedule.json       the schedule's progress at each step so far (`write_schedule`)
 A resumed run continues exactly as an uninterrupted one (`train.train_step`'s randomness follows
-the step). The loop itself, with its time budget and divergence guard, is `training_loop`.
+the step). A time-budgeted run's schedule follows the seconds trained, which no two runs share:
+the progress each step was given is recorded, and a run given it back (`replay_progress`)
+repeats the first bit for bit on the same kind of machine. The loop itself, with its time
+budget and divergence guard, is `training_loop`.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from signerf_jax.nerf.train import (TrainConfig, TrainState, init_state, make_tr
 from signerf_jax.nerf.training_data import TrainingData, with_region_rays
 
 MODEL_FILE = "model.json"
+SCHEDULE_FILE = "schedule.json"
 
 
 @dataclasses.dataclass
@@ -39,6 +44,9 @@ class Trainer:
 
   `train` below is the usual entry point; benchmarks use a Trainer directly to evaluate between
   bursts without recompiling. `mesh` is the devices the steps run on (None: all of them).
+  `progress_record` is the float32 progress each step so far was given (None: unknown, for a
+  run resumed from a checkpoint without its schedule.json); `replay_progress` ([S] float32),
+  when given, is the progress of each step instead of the steps and seconds done.
   """
 
   model: nerf_model.NerfModel
@@ -49,6 +57,8 @@ class Trainer:
   samples_trained: float = 0.0
   last_statistics: dict[str, float] = dataclasses.field(default_factory=dict)
   mesh: Mesh | None = None
+  progress_record: list[float] | None = dataclasses.field(default_factory=list)
+  replay_progress: np.ndarray | None = None
 
   def __post_init__(self):
     self.mesh = parallel.device_mesh() if self.mesh is None else self.mesh
@@ -63,8 +73,11 @@ class Trainer:
 
   @property
   def progress(self) -> float:
-    """How far through its schedule the run is, in [0, 1]: the larger of the steps done over
-    `config.steps` and the seconds trained over `config.max_seconds` (when set)."""
+    """How far through its schedule the run is, in [0, 1]: the replayed progress of this step,
+    else the larger of the steps done over `config.steps` and the seconds trained over
+    `config.max_seconds` (when set)."""
+    if self.replay_progress is not None:
+      return float(self.replay_progress[min(self.step, len(self.replay_progress) - 1)])
     fractions = [self.step / max(self.config.steps, 1)]
     if self.config.max_seconds:
       fractions.append(self.seconds_trained / self.config.max_seconds)
@@ -81,7 +94,10 @@ class Trainer:
     """
     def advance(seconds_trained: float) -> dict[str, float]:
       self.seconds_trained = seconds_trained
-      self.state, statistics = self._step_fn(self.state, self.data, jnp.float32(self.progress))
+      progress = jnp.float32(self.progress)
+      self.state, statistics = self._step_fn(self.state, self.data, progress)
+      if self.progress_record is not None:
+        self.progress_record.append(float(progress))
       # Read at once (blocking), so the loop times each step and `progress` follows it.
       statistics = {name: float(value) for name, value in statistics.items()}
       self.samples_trained += statistics["samples"]
@@ -105,6 +121,10 @@ class Trainer:
     return self.last_statistics
 
   def save(self, run_dir: str | os.PathLike) -> None:
+    # The schedule first: a kill between the two leaves it longer than the checkpoint's steps,
+    # which `restore` cuts, never shorter.
+    if self.progress_record is not None:
+      write_schedule(run_dir, self.progress_record)
     checkpoints.save(run_dir, self.state, {"step": self.step,
                                           "seconds_trained": self.seconds_trained,
                                           "samples_trained": self.samples_trained})
@@ -116,6 +136,37 @@ class Trainer:
     self.state = parallel.replicate(state, self.mesh)
     self.seconds_trained = float(metadata.get("seconds_trained", 0.0))
     self.samples_trained = float(metadata.get("samples_trained", 0.0))
+    record = read_schedule(run_dir)
+    self.progress_record = (None if record is None or len(record) < self.step
+                            else record[:self.step].tolist())
+
+
+def write_schedule(run_dir: str | os.PathLike, progress: list[float]) -> None:
+  """Writes schedule.json: {"steps": S, "progress": [S] the float32 progress of each step, each
+  as the float64 equal to it (JSON keeps a float64 exactly, so it reads back as that float32)}."""
+  files.write_json(Path(run_dir) / SCHEDULE_FILE, {
+      "steps": len(progress), "progress": [float(np.float32(value)) for value in progress]})
+
+
+def read_schedule(run_dir: str | os.PathLike) -> np.ndarray | None:
+  """[S] float32 progress of each step a run recorded (schedule.json), or None without one.
+
+  Raises:
+    InputError naming the file: malformed, or progress outside [0, 1].
+  """
+  path = Path(run_dir) / SCHEDULE_FILE
+  if not path.is_file():
+    return None
+  record = files.read_json(path)
+  try:
+    progress = np.asarray(record["progress"], np.float32)
+    valid = progress.ndim == 1 and record["steps"] == len(progress)
+  except (KeyError, TypeError, ValueError):
+    valid = False
+  if not valid or not np.all((progress >= 0) & (progress <= 1)):
+    raise InputError("must hold \"steps\" and that many \"progress\" values in [0, 1]", path,
+                     "progress")
+  return progress
 
 
 def dataset_fingerprint(dataset: Dataset, data_options: dict[str, Any] | None = None
@@ -154,6 +205,16 @@ def _fingerprint_changes(saved: dict[str, Any], current: dict[str, Any]) -> list
   return changes
 
 
+def data_changes(run_dir: str | os.PathLike, dataset: Dataset,
+                 data_options: dict[str, Any] | None = None) -> list[str]:
+  """What differs, in words, between the data a run was trained on (its model.json's
+  fingerprint) and `dataset` (nothing for a model.json without a fingerprint)."""
+  saved = files.read_json(Path(run_dir) / MODEL_FILE).get("fingerprint")
+  if not isinstance(saved, dict):
+    return []
+  return _fingerprint_changes(saved, dataset_fingerprint(dataset, data_options))
+
+
 def check_resumable(run_dir: str | os.PathLike, dataset: Dataset,
                     data_options: dict[str, Any] | None = None) -> None:
   """Refuses to resume a run on other data than it was trained on (a resumed run would train on
@@ -166,10 +227,7 @@ def check_resumable(run_dir: str | os.PathLike, dataset: Dataset,
   path = Path(run_dir) / MODEL_FILE
   if not checkpoints.has_checkpoint(run_dir) or not path.is_file():
     return
-  saved = files.read_json(path).get("fingerprint")
-  if not isinstance(saved, dict):
-    return
-  changes = _fingerprint_changes(saved, dataset_fingerprint(dataset, data_options))
+  changes = data_changes(run_dir, dataset, data_options)
   if changes:
     raise InputError(f"this run was trained on other data ({'; '.join(changes)}): give the data "
                      "it was trained on to resume it, or --start_over to train afresh in this "
@@ -228,7 +286,8 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
           steps: int | None = None, max_seconds: float | None = None, pixel_weights=None,
           model: nerf_model.NerfModel | None = None, config: TrainConfig = TrainConfig(),
           capacity_rules: CapacityRules = CapacityRules(),
-          data_options: dict[str, Any] | None = None, progress: bool = True) -> Trainer:
+          data_options: dict[str, Any] | None = None, progress: bool = True,
+          replay_progress: np.ndarray | None = None) -> Trainer:
   """Trains (or resumes, if `run_dir` has a checkpoint) a NeRF on `dataset`.
 
   Args:
@@ -244,11 +303,15 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
     capacity_rules: how a new model is sized (unused when `model` is given or resumed).
     data_options: how the data was loaded (root, downscale, ...), recorded for `signerf eval`.
     progress: show a progress bar.
+    replay_progress: [S] float32, the schedule's progress at each of S steps (another run's
+      `read_schedule`): trains exactly S steps given these, whatever the time they take.
   Returns:
     the Trainer after training (model, state, seconds_trained).
   """
   overrides = {name: value for name, value in (("steps", steps), ("max_seconds", max_seconds))
                if value is not None}
+  if replay_progress is not None:
+    overrides.update(steps=len(replay_progress), max_seconds=None)
   config = dataclasses.replace(config, **overrides)
   run_dir = Path(run_dir)
   ownership.check_claimable(run_dir, ownership.RUN, inputs=(("data", dataset.root),))
@@ -260,6 +323,7 @@ def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,
     model = saved_model
   trainer = make_trainer(dataset, model=model, config=config, init_variables=init_variables,
                          pixel_weights=pixel_weights, capacity_rules=capacity_rules)
+  trainer.replay_progress = replay_progress
   with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", dataset.root),)):
     if checkpoints.has_checkpoint(run_dir):
       trainer.restore(run_dir)

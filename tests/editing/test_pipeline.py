@@ -7,10 +7,11 @@ import shutil
 from pathlib import Path
 
 import gin
+import jax
 import numpy as np
 import pytest
 
-from signerf_jax import camera, configs, files
+from signerf_jax import camera, checkpoints, configs, files
 from signerf_jax.data import load_dataset
 from signerf_jax.editing.project import EditDirectory, frame_name
 from signerf_jax.editing import commands, stages
@@ -259,3 +260,24 @@ def test_only_the_views_that_show_the_selection_are_inpainted(finished_edit):
   summary = stage_lines(lines, "update")[-1]
   assert (f"{len(shown)} views inpainted" in summary and
           f"{len(views['empty'])} without the selection left as they are" in summary)
+
+
+def test_a_time_budgeted_edit_replayed_trains_the_same_nerfs_bit_for_bit(tiny_scene, random_model,
+                                                                        tmp_path):
+  scene_dir, _ = tiny_scene
+  scene = files.read_json(scene_dir / "scene.json")
+  budgets = {f"{run}/TrainConfig.{field}": value for run, seconds in (("original", "6.0"),
+                                                                     ("finetune", "3.0"))
+             for field, value in (("steps", "1000000"), ("max_seconds", seconds))}
+  timed = bindings(scene_dir, random_model, scene, **budgets)
+  stages.run_edit(tmp_path / "timed", settings_of(timed), until="finetune", progress=False,
+                  log=lambda line: None)
+  replayed = timed + [f"EditConfig.replay = {str(tmp_path / 'timed')!r}"]
+  stages.run_edit(tmp_path / "replayed", settings_of(replayed), until="finetune",
+                  progress=False, log=lambda line: None)
+  for run in ("original", "edited"):
+    first, first_metadata = checkpoints.read(tmp_path / "timed" / run)
+    second, second_metadata = checkpoints.read(tmp_path / "replayed" / run)
+    assert first_metadata["step"] == second_metadata["step"] >= 1
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second)):
+      assert np.array_equal(np.asarray(a), np.asarray(b)), run

@@ -202,6 +202,11 @@ def _add_how(how, offer, command: str) -> None:
                    help=f"time budget in seconds of {trainings}: it stops there, its "
                    "learning-rate schedule spanning the budget (default: none, TrainConfig.steps "
                    "steps); per run: <run>/TrainConfig.max_seconds")
+  how.add_argument("--replay", metavar="EDIT",
+                   help=f"train again, step for step, what the earlier edit EDIT trained: "
+                   f"{trainings} is given the progress its counterpart's schedule had at each "
+                   "step, so a time-budgeted edit repeats bit for bit (with EDIT's settings: "
+                   "--gin_file EDIT/config.gin)")
   how.add_argument("--redo", action="append", default=[], metavar="STAGE",
                    help=redo_help(command))
 
@@ -221,6 +226,7 @@ _FLAG_BINDINGS = {
     "data": ("EditConfig.data", _absolute_path),
     "downscale": ("EditConfig.downscale", None),
     "run": ("EditConfig.original_run", _absolute_path),
+    "replay": ("EditConfig.replay", _absolute_path),
     "prompt": ("EditConfig.prompt", None),
     "negative_prompt": ("EditConfig.negative_prompt", None),
     "seed": ("EditConfig.seed", None),

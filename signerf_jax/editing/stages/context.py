@@ -108,6 +108,23 @@ class EditContext:
     return self.original_run_dir if iteration == 0 else self.directory.path(
         "edited", iteration=iteration)
 
+  def replayed_schedule(self, run_dir: Path) -> np.ndarray | None:
+    """[S] float32 progress per step of the training that `EditConfig.replay`'s edit did into
+    the same place as `run_dir` (inside this edit), or None when not replaying.
+
+    Raises:
+      InputError: the earlier edit holds no schedule there.
+    """
+    replay = self.settings.edit.replay
+    if not replay:
+      return None
+    counterpart = Path(replay) / run_dir.relative_to(self.directory.root)
+    progress = training_run.read_schedule(counterpart)
+    if progress is None:
+      raise InputError("holds no schedule.json to replay (not a NeRF training of an edit, or "
+                       "one from before schedules were recorded)", counterpart, "EditConfig.replay")
+    return progress
+
   def nerf(self, iteration: int) -> evaluate.TrainedRun:
     """The original NeRF (iteration 0) or the edited NeRF of an iteration, loaded once."""
     if iteration not in self._nerfs:

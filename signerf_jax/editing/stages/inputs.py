@@ -75,8 +75,10 @@ def original_settings(context: EditContext) -> dict[str, Any]:
   settings = context.settings
   if settings.edit.original_run:
     return {"original_run": str(Path(settings.edit.original_run).resolve())}
-  return {"data": context.data_options, "train": as_json(settings.training["original"]),
-          "capacity": as_json(settings.capacity)}
+  key = {"data": context.data_options, "train": as_json(settings.training["original"]),
+         "capacity": as_json(settings.capacity)}
+  # Only when set: the keys of edits made before replays existed stay as they were.
+  return {**key, "replay": settings.edit.replay} if settings.edit.replay else key
 
 
 def train_original(context: EditContext) -> str:
@@ -89,7 +91,9 @@ def train_original(context: EditContext) -> str:
   trainer = training_run.train(context.dataset, context.original_run_dir,
                                config=context.settings.training["original"],
                                capacity_rules=context.settings.capacity,
-                               data_options=context.data_options, progress=context.progress)
+                               data_options=context.data_options, progress=context.progress,
+                               replay_progress=context.replayed_schedule(
+                                   context.original_run_dir))
   return (f"{trainer.step} steps ({trainer.seconds_trained:.0f} s) on "
           f"{context.dataset.num_images} views, last batch "
           f"{trainer.last_statistics.get('psnr', float('nan')):.2f} dB: {context.original_run_dir}")

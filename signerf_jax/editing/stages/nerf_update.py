@@ -32,6 +32,8 @@ def finetune_settings(context: EditContext, iteration: int) -> dict[str, Any]:
   method = update_method(context, iteration)
   settings = {"method": method, "losses": as_json(context.settings.finetune),
               "train": as_json(context.settings.training[method])}
+  if context.settings.edit.replay:  # Only when set, as the original training's key.
+    settings["replay"] = context.settings.edit.replay
   if method == "retrain":
     settings["capacity"] = as_json(context.settings.capacity)
   return settings
@@ -63,6 +65,7 @@ def update_nerf(context: EditContext, iteration: int = 1) -> str:
   run_dir = context.directory.path("edited", iteration=iteration)
   data_options = {"root": str(dataset_dir.resolve()), "downscale": 1}
   config = context.settings.training[method]
+  replay_progress = context.replayed_schedule(run_dir)
   model, variables, region = _start(context, iteration)
   if method == "retrain":
     # A new field (over the original one outside the edit region); without an edit region a
@@ -74,7 +77,7 @@ def update_nerf(context: EditContext, iteration: int = 1) -> str:
     trainer = training_run.train(edited, run_dir, config=config, data_options=data_options,
                                  model=model if kept else None, init_variables=kept,
                                  capacity_rules=context.settings.capacity,
-                                 progress=context.progress)
+                                 progress=context.progress, replay_progress=replay_progress)
     how = "retrained from scratch"
   else:
     losses_config = context.settings.finetune
@@ -85,7 +88,7 @@ def update_nerf(context: EditContext, iteration: int = 1) -> str:
         edited, run_dir, model=model, init_variables=variables, config=config,
         loss_settings=losses, lpips_params=finetune.load_lpips(losses_config.lpips_weights),
         edited_bounds=model.edit_region or context.selection.bounds, data_options=data_options,
-        progress=context.progress)
+        progress=context.progress, replay_progress=replay_progress)
     how = ("fine-tuned from the " + ("original" if iteration == 1 else "edited") +
            " NeRF (L1" + (" + LPIPS)" if losses.uses_lpips else ")"))
   context.forget_nerf(iteration)

@@ -1,5 +1,7 @@
 """`signerf train`: train (or resume) a NeRF on a dataset, then evaluate it on its held-out
-views. The run directory gets the gin bindings as config.gin, which a resume reads back."""
+views. The run directory gets the gin bindings as config.gin, which a resume reads back.
+`--replay RUN` trains again what RUN trained, given the progress its schedule had at each step
+(`training_run.read_schedule`): a time-budgeted run, repeated bit for bit."""
 
 from __future__ import annotations
 
@@ -11,13 +13,21 @@ from signerf_jax import checkpoints, cli, configs, ownership
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import load_dataset, load_views
 from signerf_jax.nerf import capacity, train, training_run
-from signerf_jax.nerf.commands import DataConfig, add_data_arguments, data_options
+from signerf_jax.errors import InputError
+from signerf_jax.nerf.commands import (DataConfig, add_data_arguments, data_options,
+                                       load_recorded_dataset)
 from signerf_jax.nerf.commands import evaluate as evaluate_command
 from signerf_jax.validation import argument_type
 
+# What --replay takes from the run it repeats, so none of these may be given with it.
+REPLAYED_FLAGS = ("data", "steps", "max_seconds", "downscale", "eval_every",
+                  "held_out", "scene_kind", "scene_center", "scene_radius", "gin_file",
+                  "gin_param")
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-  parser.add_argument("--data", required=True, help=cli.DATA_HELP)
+  parser.add_argument("--data", default=None,
+                      help=f"{cli.DATA_HELP}; required unless --replay")
   cli.add_output_argument(
       parser, "--run", deprecated=("--out",), required=True,
       help="run directory: new or empty (a run starts), or a run of `signerf train` (it "
@@ -30,6 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="training time budget in seconds: training stops there and the "
                       "schedule spans it (resumable; default: the gin-bound "
                       "TrainConfig.max_seconds, none)")
+  parser.add_argument("--replay", default=None, metavar="RUN",
+                      help="train again what the run RUN trained: its data, settings and model, "
+                      "given the progress its schedule had at each step (RUN/schedule.json), so "
+                      "a time-budgeted run repeats bit for bit on the same kind of machine")
   parser.add_argument("--skip_eval", action="store_true",
                       help="do not evaluate on the held-out views after training")
   parser.add_argument("--start_over", action="store_true",
@@ -41,6 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+  if args.replay is not None:
+    return _replay(args)
+  if args.data is None:
+    raise InputError("give the dataset to train on (or --replay RUN)", field="data")
   run_dir = Path(args.run)
   ownership.check_claimable(run_dir, ownership.RUN, inputs=(("data", args.data),), flag="run")
   resuming = checkpoints.has_checkpoint(run_dir) and not args.start_over
@@ -62,15 +80,50 @@ def run(args: argparse.Namespace) -> int:
     training_run.check_resumable(run_dir, dataset, options)
   model = (training_run.read_model_file(run_dir)[0] if resuming
            else training_run.build_model(dataset, rules=rules))
+  return _train_and_evaluate(args, dataset, model, config, options)
+
+
+def _replay(args: argparse.Namespace) -> int:
+  """`signerf train --replay RUN --run RUN2`: RUN's data, gin bindings, model and recorded
+  schedule (see the module docstring)."""
+  source = Path(args.replay)
+  ownership.check_claimable(args.run, ownership.RUN, inputs=(("replay", source),), flag="run")
+  given = [name for name in REPLAYED_FLAGS if getattr(args, name, None) not in (None, False, [])]
+  if given:
+    raise InputError(f"--replay repeats the run with its own data and settings: leave out "
+                     f"--{given[0]}", source, "replay")
+  progress = training_run.read_schedule(source)
+  saved_config = source / configs.SAVED_CONFIG_NAME
+  if progress is None or not saved_config.is_file():
+    missing = training_run.SCHEDULE_FILE if progress is None else configs.SAVED_CONFIG_NAME
+    raise InputError(f"has no {missing}: not a run of `signerf train`, or trained before runs "
+                     "recorded their schedule", source, "replay")
+  configs.parse_gin([saved_config], [])
+  model, description = training_run.read_model_file(source)
+  dataset = load_recorded_dataset(description, "train")
+  changes = training_run.data_changes(source, dataset, description.get("data_options"))
+  if changes:
+    raise InputError(f"its data changed since it was trained ({'; '.join(changes)}): it cannot "
+                     "be repeated", source, "replay")
+  return _train_and_evaluate(args, dataset, model, configs.build(train.TrainConfig),
+                             description["data_options"], progress)
+
+
+def _train_and_evaluate(args: argparse.Namespace, dataset, model, config, options,
+                        replay_progress=None) -> int:
+  """Trains in args.run (claimed; a run there resumes), then evaluates unless --skip_eval."""
+  run_dir = Path(args.run)
+  inputs = (("data", options["root"]), ("replay", args.replay))
   print(f"signerf train: {dataset.num_images} training views of {dataset.width}x"
         f"{dataset.height} px; {frame_lib.summary_line(dataset.frame)}\n"
         f"signerf train: {capacity.describe(model.capacity)}", file=sys.stderr)
-  with ownership.claimed(run_dir, ownership.RUN, inputs=(("data", args.data),), flag="run"):
+  with ownership.claimed(run_dir, ownership.RUN, inputs=inputs, flag="run"):
     if args.start_over:
       ownership.remove_written(run_dir)
     configs.save_gin_config(run_dir)
     trainer = training_run.train(dataset, run_dir, steps=args.steps, max_seconds=args.max_seconds,
-                                 model=model, config=config, data_options=options)
+                                 model=model, config=config, data_options=options,
+                                 replay_progress=replay_progress)
     statistics = trainer.last_statistics
     message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
                f"last batch {statistics.get('psnr', float('nan')):.2f} dB")
