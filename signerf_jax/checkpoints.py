@@ -21,7 +21,7 @@ import flax.serialization
 import jax
 import numpy as np
 
-from signerf_jax import files, ownership
+from signerf_jax import distributed, files, ownership
 from signerf_jax.errors import InputError
 
 CHECKPOINT_NAME = "checkpoint.msgpack"
@@ -46,7 +46,8 @@ def save(directory: str | os.PathLike, state: Any, metadata: dict[str, Any]) -> 
   previous = path.parent / PREVIOUS_NAME
   ownership.check_replaceable(previous)
   payload = flax.serialization.msgpack_serialize({
-      "state": flax.serialization.to_state_dict(jax.device_get(state)), "metadata": metadata})
+      "state": flax.serialization.to_state_dict(distributed.to_host(state)),
+      "metadata": metadata})
   envelope = flax.serialization.msgpack_serialize(
       {"sha256": hashlib.sha256(payload).hexdigest(), "payload": payload})
   with files.atomic_path(path) as temporary:

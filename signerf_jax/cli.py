@@ -109,6 +109,10 @@ DATA_HELP = f"dataset directory ({DATA_FORMATS}; the format is detected)"
 # glibc's defaults (docs/performance.md).
 KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "demo", "view")
 
+# Commands that run under jax.distributed when asked (`distributed`): their computations split
+# over the devices of every process.
+DISTRIBUTED_COMMANDS = ("train", "edit", "update", "finetune")
+
 # Commands a rerun resumes (checkpoints and finished stages are kept): an interrupted one says so.
 RESUMABLE_COMMANDS = ("process", "train", "edit", "update", "finetune", "demo")
 
@@ -179,6 +183,9 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
     subparser.set_defaults(module_name=module_name)
     if argv and argv[0] == name:
       importlib.import_module(module_name).add_arguments(subparser)
+      if name in DISTRIBUTED_COMMANDS:
+        from signerf_jax import distributed  # pylint: disable=g-import-not-at-top
+        distributed.add_arguments(subparser)
   return parser
 
 
@@ -205,6 +212,17 @@ def _raise_terminated(signum: int, frame) -> None:
   raise training_loop.Terminated()
 
 
+def _run_command(module, args: argparse.Namespace, output_flag: str | None) -> int:
+  """`module.run(args)`, in each process of a run of several when the command joins one
+  (`distributed`: only process 0 writes the outputs)."""
+  from signerf_jax import distributed, parallel  # pylint: disable=g-import-not-at-top
+  joined = distributed.settings(args) if args.command in DISTRIBUTED_COMMANDS else None
+  if joined is not None:
+    parallel.initialize_distributed(*joined)
+  with distributed.private_outputs(args, output_flag):
+    return int(module.run(args) or 0)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
   """Runs the subcommand `argv` names; returns its exit code: 2 with a message on bad input;
   130 / 143 with one line after SIGINT / SIGTERM (a training run checkpoints its steps first
@@ -227,7 +245,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if output_flag and getattr(args, output_flag, None):
       ownership.check_output_path(getattr(args, output_flag), output_flag)
     use_compilation_cache()
-    return int(module.run(args) or 0)
+    return _run_command(module, args, output_flag)
   except InputError as error:
     print(f"signerf {args.command}: error: {error}", file=sys.stderr)
     return 2

@@ -75,3 +75,11 @@ def initialize_distributed(coordinator_address: str, num_processes: int, process
     raise InputError(f"must be in [0, {num_processes}), got {process_id}", field="process_id")
   jax.distributed.initialize(coordinator_address, num_processes=num_processes,
                              process_id=process_id)
+
+
+def barrier(name: str) -> None:
+  """Waits until every process of the run has reached the barrier `name` (one process: returns
+  at once)."""
+  if jax.process_count() > 1:
+    from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+    multihost_utils.sync_global_devices(name)
