@@ -72,10 +72,15 @@ def link_photos(folder: Path, names: list[str]) -> None:
     (folder / name).symlink_to((STITCH / split / name).resolve())
 
 
+def recovered_poses(data: Path) -> dict[str, np.ndarray]:
+  """Image name -> [4, 4] camera-to-world `signerf process` recovered (DATA/transforms.json)."""
+  return {Path(frame["file_path"]).name: np.asarray(frame["transform_matrix"])
+          for frame in files.read_json(data / "transforms.json")["frames"]}
+
+
 def pose_accuracy(data: Path, given: dict[str, np.ndarray]) -> dict:
   """Rotation and position errors of the recovered poses after a similarity alignment."""
-  recovered = {Path(frame["file_path"]).name: np.asarray(frame["transform_matrix"])
-               for frame in files.read_json(data / "transforms.json")["frames"]}
+  recovered = recovered_poses(data)
   names = sorted(recovered)
   rotation, position, radius = pose_alignment.pose_errors(
       np.stack([recovered[name] for name in names]), np.stack([given[name] for name in names]))
@@ -96,8 +101,7 @@ def held_out(run: Path) -> dict:
 
 def camera_panel(data: Path, given: dict[str, np.ndarray]) -> np.ndarray:
   """Camera centres from above (x, y of the given frame), given and recovered (aligned)."""
-  recovered = {Path(frame["file_path"]).name: np.asarray(frame["transform_matrix"])
-               for frame in files.read_json(data / "transforms.json")["frames"]}
+  recovered = recovered_poses(data)
   names = sorted(recovered)
   estimated = np.stack([recovered[name][:3, 3] for name in names])
   truth = np.stack([given[name][:3, 3] for name in names])

@@ -189,7 +189,7 @@ def _jpeg_size(data: bytes, path: Path) -> tuple[int, int]:
   raise InputError("not a readable image (JPEG without a frame header, or truncated)", path)
 
 
-def _checked_size(data: bytes, path: Path) -> tuple[int, int] | None:
+def checked_size(data: bytes, path: Path) -> tuple[int, int] | None:
   """(width, height) of a PNG or JPEG read from its header alone, after checking the file is
   complete; None for other formats (left to the decoder)."""
   if data.startswith(PNG_SIGNATURE):
@@ -219,7 +219,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
   data = path.read_bytes()
   if not data:
     raise InputError("not a readable image (the file is empty)", path)
-  size = _checked_size(data, path)
+  size = checked_size(data, path)
   image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
   if image is None or (size is not None and image.shape[1::-1] != size):
     raise InputError("not a readable image", path)

@@ -66,7 +66,10 @@ def read_upright(path: Path) -> np.ndarray:
   """[H, W, 3] float32 RGB in [0, 1] of a photo, turned as its EXIF orientation says (cameras
   store portrait photos sideways with a tag)."""
   data = path.read_bytes()
-  # IMREAD_COLOR applies the EXIF orientation (IMREAD_UNCHANGED would not).
+  # Truncated files and decompression bombs are refused from the header, as `files.read_image`
+  # does; IMREAD_COLOR (not its IMREAD_UNCHANGED) applies the EXIF orientation.
+  if data:
+    files.checked_size(data, path)
   image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
   if image is None:
     raise InputError("not a readable image", path, "images")

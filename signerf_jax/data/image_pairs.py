@@ -10,6 +10,7 @@ pretrained tree). Retrieval closes the loop when a walk around an object returns
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 Pair = tuple[int, int]
@@ -67,8 +68,6 @@ def retrieval_pairs(descriptors: list[np.ndarray], neighbours: int, seed: int = 
 def visual_word_histograms(descriptors: list[np.ndarray], seed: int = 0) -> np.ndarray:
   """[n, VOCABULARY_SIZE] unit-norm tf-idf histograms of each image's visual words (zero rows
   for images without descriptors)."""
-  import cv2  # Here: only retrieval needs OpenCV's k-means.
-
   features = [np.asarray(d, np.float32) for d in descriptors]
   everything = np.concatenate([f for f in features if len(f)] or [np.zeros((0, 128), np.float32)])
   if len(everything) == 0:
