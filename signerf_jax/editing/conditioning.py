@@ -7,11 +7,16 @@ depth into a mask and a control depth (`geometry.selection`: box or proxy), the 
 and feathered (`geometry.masks`) and the control depth normalised to inverse depth over the
 selection's own depth range in each camera (`geometry.control_depth`), so reference tiles and
 dataset views show the selection in the same normalised band.
+
+The training views need the render only where the selection, its mask and the control depth the
+diffusion model sees can be (`pixels_to_render`): rendering just there costs the selection's
+share of the pixels (`condition_views(..., only_where_selected_can_appear=True)`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import numpy as np
@@ -20,6 +25,7 @@ from signerf_jax import camera as camera_lib
 from signerf_jax.editing.config import SelectionConfig
 from signerf_jax.editing.select import EditSelection
 from signerf_jax.geometry import control_depth as control_depth_lib
+from signerf_jax.geometry import image_rectangles
 from signerf_jax.geometry import masks as masks_lib
 from signerf_jax.geometry import mesh_depth
 from signerf_jax.geometry import selection as selection_lib
@@ -29,14 +35,15 @@ from signerf_jax.nerf import render
 
 @dataclasses.dataclass(frozen=True)
 class Conditioning:
-  """Per camera, [N, H, W] unless stated.
+  """Per camera, [N, H, W] unless stated (rendered only near the selection: see `condition`).
 
   Attributes:
-    render: [N, H, W, 3] the NeRF's colour render in [0, 1].
+    render: [N, H, W, 3] the NeRF's colour render in [0, 1] (0 where not rendered).
     selected: bool, the selection as the cameras see it (before dilation).
     mask: float32 in [0, 1], the inpainting mask (dilated and feathered).
-    control: float32 in [0, 1], normalised inverse control depth (near = 1).
-    control_depth: float32 control z-depth in scene units (+inf: nothing there).
+    control: float32 in [0, 1], normalised inverse control depth (near = 1; 0 where not
+      rendered).
+    control_depth: float32 control z-depth in scene units (+inf: nothing there, or not rendered).
   """
 
   render: np.ndarray
@@ -65,10 +72,48 @@ class Conditioning:
                   for field in dataclasses.fields(cls)})
 
 
-def condition(model: nerf_model.NerfModel, variables, cameras: camera_lib.Cameras,
-              edit_selection: EditSelection, config: SelectionConfig) -> Conditioning:
-  """Renders `cameras` with the NeRF and derives masks and control depth (module docstring)."""
-  renders = render.render_cameras(model, variables, cameras)
+# Pixels rendered beyond the mask's reach (already rounded up): a margin against an off-by-one
+# in that reach, as the views stage trades a few pixels for certainty.
+SAFETY_PIXELS = 2
+
+
+def mask_reach(config: SelectionConfig, height: int, width: int) -> int:
+  """Pixels from the selection's edge to the farthest nonzero pixel of its inpainting mask in an
+  H x W image: the dilation radius plus the feather, scaled (`masks.scaled_radius`), rounded up
+  (`masks.dilate_and_feather` keeps a pixel only when a selected pixel centre lies nearer)."""
+  return math.ceil(masks_lib.scaled_radius(config.dilation_radius, height, width)
+                   + masks_lib.scaled_radius(config.feather_radius, height, width))
+
+
+def pixels_to_render(cameras: camera_lib.Cameras, edit_selection: EditSelection,
+                     config: SelectionConfig, context_boxes=None) -> np.ndarray:
+  """[N, H, W] bool: where the selection or its mask can appear in each camera, the rectangle of
+  the pixels whose centre ray can meet the selection (`image_rectangles.points_rectangles` of
+  its box corners or proxy vertices; the full frame for a camera with one of them behind it)
+  grown by the mask's reach plus `SAFETY_PIXELS`, and the pixels inside `context_boxes`. A
+  camera whose rectangle is empty (no pixel can show the selection) renders nothing.
+
+  Args:
+    context_boxes: None, or [N, 4] boxes [x0, y0, width, height] (pixels) whose control depth is
+      wanted beyond the mask's reach (what the diffusion model sees around it), in the cameras
+      that can show the selection.
+  """
+  growth = mask_reach(config, cameras.height, cameras.width) + SAFETY_PIXELS
+  rectangles = image_rectangles.points_rectangles(cameras, edit_selection.points, growth)
+  pixels = image_rectangles.rectangle_pixels(rectangles, cameras.height, cameras.width)
+  if context_boxes is not None:
+    # Only in views that can show the selection: the others are never inpainted.
+    seen = rectangles[:, 2] > rectangles[:, 0]
+    pixels |= image_rectangles.rectangle_pixels(
+        image_rectangles.box_rectangles(context_boxes, cameras.height, cameras.width),
+        cameras.height, cameras.width) & seen[:, None, None]
+  return pixels
+
+
+def _derive(cameras: camera_lib.Cameras, renders: dict[str, np.ndarray],
+            edit_selection: EditSelection, config: SelectionConfig) -> Conditioning:
+  """The selection, masks and control depth of N cameras from their NeRF `renders`
+  (`render.render_cameras`' outputs, [N, H, W, ...]); see the module docstring."""
   # The median depth: a pixel straddling a silhouette takes one surface's depth, not a blend.
   depth, accumulation = renders["median_depth"], renders["accumulation"]
   if edit_selection.kind == "box":
@@ -90,13 +135,46 @@ def condition(model: nerf_model.NerfModel, variables, cameras: camera_lib.Camera
                       control_depth=as_numpy(selected.control_depth))
 
 
+def condition(model: nerf_model.NerfModel, variables, cameras: camera_lib.Cameras,
+              edit_selection: EditSelection, config: SelectionConfig, *,
+              only_where_selected_can_appear: bool = False, context_boxes=None) -> Conditioning:
+  """Renders `cameras` with the NeRF and derives masks and control depth (module docstring).
+
+  Args:
+    only_where_selected_can_appear: False renders full frames (figures and metrics need every
+      pixel). True renders only `pixels_to_render` (with `context_boxes`): selected and mask are
+      then those of full frames everywhere (no selection can lie outside), render, control and
+      control_depth those of full frames there; elsewhere render and control are 0 and
+      control_depth +inf (nothing there).
+    context_boxes: see `pixels_to_render` (only with `only_where_selected_can_appear`).
+  """
+  pixels = (pixels_to_render(cameras, edit_selection, config, context_boxes)
+            if only_where_selected_can_appear else None)
+  renders = render.render_cameras(model, variables, cameras, pixels=pixels)
+  return _derive(cameras, renders, edit_selection, config)
+
+
 def condition_views(model: nerf_model.NerfModel, variables, cameras: camera_lib.Cameras,
                     indices, edit_selection: EditSelection, config: SelectionConfig,
-                    chunk_size: int) -> Conditioning:
-  """`condition` of the cameras at `indices` (at most `chunk_size`), computed for exactly
-  `chunk_size` cameras (the last one repeated) so that every chunk reuses one compilation."""
+                    chunk_size: int, *, only_where_selected_can_appear: bool = False,
+                    context_boxes=None) -> Conditioning:
+  """`condition` of the cameras at `indices` (at most `chunk_size`). Their renders are derived
+  for exactly `chunk_size` cameras (the last one repeated, not rendered again) so that every
+  chunk reuses one compilation.
+
+  Args:
+    only_where_selected_can_appear: see `condition`.
+    context_boxes: None or [N, 4] boxes of all N `cameras` (`pixels_to_render`).
+  """
   indices = np.asarray(indices, np.int64)
-  padded = np.concatenate([indices, np.repeat(indices[-1:], chunk_size - len(indices))])
-  conditioned = condition(model, variables, cameras.take(padded), edit_selection, config)
-  return Conditioning(**{name: array[:len(indices)]
-                         for name, array in conditioned.arrays().items()})
+  chosen = cameras.take(indices)
+  pixels = None
+  if only_where_selected_can_appear:
+    pixels = pixels_to_render(chosen, edit_selection, config,
+                              None if context_boxes is None else np.asarray(context_boxes)[indices])
+  renders = render.render_cameras(model, variables, chosen, pixels=pixels)
+  padding = np.repeat(len(indices) - 1, chunk_size - len(indices))
+  padded = np.concatenate([np.arange(len(indices)), padding])
+  conditioned = _derive(chosen.take(padded), {name: array[padded] for name, array
+                                              in renders.items()}, edit_selection, config)
+  return conditioned.take(np.arange(len(indices)))

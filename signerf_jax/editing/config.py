@@ -278,15 +278,17 @@ class EvaluationConfig(validation.CheckedFields):
     clip_model: a transformers CLIP checkpoint (`clip.similarity`); "" skips CLIP.
     source_caption: CLIP's caption of the unedited scene.
     independent_views: how many edited views get an independent per-view edit for the
-      consistency comparison (0 skips it).
-    video_frames: frames of the before/after orbit video (0: no video).
+      consistency comparison (0 skips it: a diffusion sampling a view, which the demo and the
+      benchmarks spend and an everyday edit need not).
+    video_frames: frames of the before/after orbit video (0: no video; each frame is a full
+      render of the original NeRF, the edited one re-rendered only where its edit region shows).
     video_fps: its frame rate.
   """
 
   clip_model: str = ""
   source_caption: str = "a photo of a scene"
-  independent_views: NonNegativeInt = 12
-  video_frames: NonNegativeInt = 48
+  independent_views: NonNegativeInt = 0
+  video_frames: NonNegativeInt = 0
   video_fps: PositiveInt = 12
 
 

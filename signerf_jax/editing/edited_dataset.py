@@ -8,6 +8,7 @@ the source dataset had training masks):
   edit_masks/     the inpainting masks (8-bit; 1 = generated);
   control/        the normalised control depth the diffusion model saw (16-bit, near = 1);
   control_depth/  the control z-depth in scene units as EXR (0 = nothing there);
+                  both rendered only around the selection and the update's tile (0 elsewhere);
 and, in transforms.json's `signerf.provenance` block, how the edit was made: prompt, seed,
 sheet recipe, every setting, the model's path and sha256, and which views were left unedited.
 The extra folders are written first and transforms.json last, so an interrupted write leaves no

@@ -7,6 +7,7 @@ from signerf_jax import cli, configs, files
 from signerf_jax.default_model import export
 from signerf_jax.default_model import model as model_lib
 from signerf_jax.editing import commands, generation
+from signerf_jax.editing.commands import evaluate as evaluate_command
 from signerf_jax.editing.config import (DEFAULT_MODEL_DIR, TRAINING_RUNS, EditConfig,
                                         EditSettings, SelectionConfig)
 from signerf_jax.errors import InputError
@@ -85,3 +86,12 @@ def test_up_mesh_up_and_heading_bind_the_standing_proxy(clear_gin):
   selection = commands.edit_settings().selection
   assert (selection.up, selection.mesh_up, selection.heading_degrees) == (
       (0.0, 0.0, 1.0), (0.0, 0.0, 1.0), 15.0)
+
+
+def test_eval_takes_gin_for_an_edit_only():
+  argv = ["eval", "--run", "r", "--gin_param", "EvaluationConfig.independent_views = 12"]
+  args = cli.build_parser(argv).parse_args(argv)
+  with pytest.raises(InputError, match="--edit"):
+    evaluate_command.check_arguments(args)
+  argv[1:3] = ["--edit", "e"]
+  evaluate_command.check_arguments(cli.build_parser(argv).parse_args(argv))

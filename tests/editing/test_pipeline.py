@@ -249,6 +249,18 @@ def test_eval_of_an_edit_prints_one_json_line(finished_edit, capsys):
   assert np.isfinite(json.loads(out)["background"]["psnr_paper"])
 
 
+def test_eval_of_an_edit_turns_on_its_costlier_parts_from_gin(finished_edit, tmp_path, capsys):
+  directory, _, _ = finished_edit
+  assert not (directory / "evaluation" / "before_after.mp4").exists()  # Off by default.
+  copy = tmp_path / "edit"
+  shutil.copytree(directory, copy)
+  assert commands.run_evaluation(copy, (), ["EvaluationConfig.independent_views = 1",
+                                            "EvaluationConfig.video_frames = 2"]) == 0
+  metrics = json.loads(capsys.readouterr().out)
+  assert metrics["independent_edits"]["views"] == 1
+  assert (copy / "evaluation" / "before_after.mp4").is_file()
+
+
 def test_only_the_views_that_show_the_selection_are_inpainted(finished_edit):
   directory, lines, _ = finished_edit
   views = files.read_json(directory / "views" / "views.json")

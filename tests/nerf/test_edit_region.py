@@ -20,8 +20,8 @@ from signerf_jax import camera
 from signerf_jax.editing import finetune
 from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import (capacity, evaluate, render, sampling, scene_info, train,
-                              training_data, training_run, volume)
+from signerf_jax.nerf import (capacity, edit_region_render, evaluate, render, sampling,
+                              scene_info, train, training_data, training_run, volume)
 from signerf_jax.nerf import model as nerf_model
 
 BACKGROUND = jnp.array([0.2, 0.4, 0.6])
@@ -318,3 +318,54 @@ def test_original_variables_need_an_edit_region(sphere):
 def test_a_negative_region_margin_is_an_error_naming_the_setting():
   with pytest.raises(InputError, match="FinetuneConfig.region_margin"):
     FinetuneConfig(region_margin=-0.1)
+
+
+@pytest.mark.parametrize("supersampling", [1, 2])
+def test_region_pixels_are_those_whose_rays_cross_the_region(sphere, supersampling):
+  region_model, _ = proposal_region_model(sphere)
+  cameras = sphere.cameras.take([1, 3])
+  pixels = edit_region_render.region_pixels(region_model, cameras, supersampling)
+  for view in range(2):
+    centres = region_hits(cameras, view)
+    assert centres.any() and (~centres).any()
+    if supersampling == 1:
+      np.testing.assert_array_equal(pixels[view], centres)
+    else:  # A pixel any of whose four rays crosses: the centres' pixels and a rim around them.
+      assert pixels[view][centres].all() and pixels[view].sum() > centres.sum()
+
+
+def test_the_edited_render_over_the_original_equals_a_full_render(sphere):
+  region_model, region_variables = proposal_region_model(sphere)
+  cameras = sphere.cameras.take([1, 3])
+  original = render.render_cameras(region_model.original, region_variables["original"],
+                                   cameras)["rgb"]
+  full = render.render_cameras(region_model, region_variables, cameras)["rgb"]
+  composed = edit_region_render.render_over_original(region_model, region_variables, cameras,
+                                                     original)
+  np.testing.assert_allclose(composed, full, atol=1e-6)
+  assert not np.allclose(composed, original, atol=1e-3)  # The region did change something.
+
+
+def test_an_edit_region_out_of_view_renders_nothing_again(sphere, monkeypatch):
+  region_model, region_variables = proposal_region_model(sphere)
+  cameras = sphere.cameras.take([0])
+  rays, centre = camera.image_rays(cameras, 0), (cameras.height // 2, cameras.width // 2)
+  behind = np.asarray(rays.origins[centre] - 2.0 * rays.directions[centre])
+  behind_the_cameras = dataclasses.replace(
+      region_model, edit_region=(tuple(behind - 0.1), tuple(behind + 0.1)))
+  rendered_pixels = []
+  full_render = render.render_cameras
+
+  def counting_render(*args, pixels=None, **kwargs):
+    rendered_pixels.append(None if pixels is None else int(np.sum(pixels)))
+    return full_render(*args, pixels=pixels, **kwargs)
+
+  monkeypatch.setattr(render, "render_cameras", counting_render)
+  original = np.full((1, cameras.height, cameras.width, 3), 0.3, np.float32)
+  composed = edit_region_render.render_over_original(behind_the_cameras, region_variables,
+                                                     cameras, original)
+  np.testing.assert_array_equal(composed, original)
+  assert rendered_pixels == [0]
+  edit_region_render.render_over_original(behind_the_cameras.original,
+                                          region_variables["original"], cameras, original)
+  assert rendered_pixels == [0, None]  # Without an edit region: every pixel.

@@ -327,11 +327,11 @@ def run_stages(name: str, args: argparse.Namespace, extra_bindings=()
   return edit, time.perf_counter() - start
 
 
-def run_evaluation(edit_directory: str | Path) -> int:
-  """`signerf eval --edit DIR`: evaluates the edit (running any unfinished stage first) and
-  prints the metrics as one JSON line (the figures, video and metrics.json are in
-  DIR/evaluation)."""
-  parse_edit_config(edit_directory, (), ())
+def run_evaluation(edit_directory: str | Path, gin_files=(), bindings=()) -> int:
+  """`signerf eval --edit DIR`: evaluates the edit (running any unfinished stage first; with
+  the edit's saved gin, then `gin_files` and `bindings`) and prints the metrics as one JSON line
+  (the figures, video and metrics.json are in DIR/evaluation)."""
+  parse_edit_config(edit_directory, gin_files, bindings)
   edit = run_command("eval", edit_directory)
   metrics_path = edit.directory.path("evaluation", "metrics.json")
   print(json.dumps(json.loads(metrics_path.read_text())))

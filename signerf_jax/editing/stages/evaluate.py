@@ -30,7 +30,7 @@ from signerf_jax.editing.stages.context import EditContext, evenly_spaced
 from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
 from signerf_jax.editing.stages.propagation import EditedViews, edited_views
 from signerf_jax.metrics import background
-from signerf_jax.nerf import render
+from signerf_jax.nerf import edit_region_render, render
 
 BEFORE_AFTER_VIEWS = 4
 # Columns of the independent-edits figure.
@@ -122,8 +122,10 @@ def _figures(context: EditContext, iteration: int, nerfs, before, after) -> list
   outputs = [directory / "before_after.png", directory / "sheet.png"]
   if config.video_frames:
     path = render.orbit_cameras(nerfs[1].model, context.dataset.cameras, config.video_frames)
-    frames = np.concatenate([render.render_cameras(nerf.model, nerf.variables, path)["rgb"]
-                             for nerf in nerfs], axis=2)
+    original = render.render_cameras(nerfs[0].model, nerfs[0].variables, path)["rgb"]
+    edited = edit_region_render.render_over_original(nerfs[1].model, nerfs[1].variables, path,
+                                                     original)
+    frames = np.concatenate([original, edited], axis=2)
     outputs.append(render.write_video(directory / "before_after.mp4", frames, config.video_fps))
   return outputs
 
@@ -148,8 +150,9 @@ def evaluate_edit(context: EditContext) -> str:
   iteration = 2 if context.settings.edit.second_iteration else 1
   original, edited_nerf = context.nerf(0), context.nerf(iteration)
   before = _held_out_conditioning(context, original)
-  after = render.render_cameras(edited_nerf.model, edited_nerf.variables,
-                                context.eval_cameras)["rgb"]
+  # Outside the edit region's pixels the edited NeRF renders what the original does.
+  after = edit_region_render.render_over_original(edited_nerf.model, edited_nerf.variables,
+                                                  context.eval_cameras, before.render)
   part_done()
   metrics: dict[str, Any] = {"prompt": context.settings.edit.prompt,
                              "num_eval_views": context.eval_cameras.num_cameras}

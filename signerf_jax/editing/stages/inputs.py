@@ -113,11 +113,35 @@ def select(context: EditContext) -> str:
           f"{int(seeing.sum())} of {len(seeing)} cameras: {', '.join(map(str, written))}")
 
 
+def view_settings(context: EditContext) -> dict[str, Any]:
+  """The views stage's key: what decides the update's tiles, whose source pixels it renders
+  (`tile_sources`)."""
+  sheet, layout = context.settings.sheet, context.layout
+  return {"crops": sheet.crops, "crop_margin": sheet.crop_margin,
+          "crop_max_upscale": sheet.crop_max_upscale,
+          "tile_size": [layout.tile_height, layout.tile_width]}
+
+
+def tile_sources(context: EditContext) -> np.ndarray:
+  """[N, 4] boxes [x0, y0, width, height] (pixels) holding every pixel of the training views that
+  the image set update's tiles are resampled from (`context.tile_boxes`, grown by the reach of
+  `crops.crop_to_tiles`' antialiased bilinear kernel: a pixel, or the downscaling factor, plus a
+  pixel of margin): the diffusion model sees the control depth of all of them."""
+  boxes = context.tile_boxes(context.dataset.cameras).astype(np.float64)
+  layout = context.layout
+  reach = np.maximum(1.0, np.maximum(boxes[:, 2] / layout.tile_width,
+                                     boxes[:, 3] / layout.tile_height)) + 1.0
+  return np.concatenate([boxes[:, :2] - reach[:, None], boxes[:, 2:] + 2 * reach[:, None]], -1)
+
+
 def condition_views(context: EditContext) -> str:
   """Renders each training view's mask and control depth (resumable: finished views are kept)
-  and records which views show the selection."""
+  and records which views show the selection. Each view is rendered only where the selection,
+  its mask, or the control depth the update's diffusion model sees can be
+  (`conditioning.pixels_to_render`)."""
   dataset, original = context.dataset, context.nerf(0)
   selection_config = context.settings.selection
+  sources = tile_sources(context)
   indices = np.arange(dataset.num_images)
   finished = [index for index in indices if context.view_path(index).is_file()]
   bar = tqdm.tqdm(total=len(indices), initial=len(finished), unit="view", desc="views",
@@ -127,9 +151,10 @@ def condition_views(context: EditContext) -> str:
              if not context.view_path(index).is_file()]
     if not chunk:
       continue
-    conditioned = conditioning_lib.condition_views(original.model, original.variables,
-                                                   dataset.cameras, chunk, context.selection,
-                                                   selection_config, VIEWS_PER_CHUNK)
+    conditioned = conditioning_lib.condition_views(
+        original.model, original.variables, dataset.cameras, chunk, context.selection,
+        selection_config, VIEWS_PER_CHUNK, only_where_selected_can_appear=True,
+        context_boxes=sources)
     for position, index in enumerate(chunk):
       save_arrays(context.view_path(index), **{name: array[position] for name, array
                                                in conditioned.arrays().items()})

@@ -45,9 +45,10 @@ def _view_loader(context: EditContext, iteration: int):
     masks = np.stack([item["mask"] for item in conditioned])
     images = dataset.images[indices]
     if edited_nerf is not None:
-      # Iteration 2 updates what the edited NeRF shows in the selection, the photo elsewhere.
+      # Iteration 2 updates what the edited NeRF shows in the selection, the photo elsewhere:
+      # only the mask's pixels are rendered (0 elsewhere, where the mask weighs nothing).
       rendered = render.render_cameras(edited_nerf.model, edited_nerf.variables,
-                                       dataset.cameras.take(indices))["rgb"]
+                                       dataset.cameras.take(indices), pixels=masks > 0)["rgb"]
       images = images * (1 - masks[..., None]) + rendered * masks[..., None]
     return update_lib.SlotViews(images=images, masks=masks,
                                 controls=np.stack([item["control"] for item in conditioned]),

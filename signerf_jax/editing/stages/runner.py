@@ -74,8 +74,10 @@ def _iteration_stages(iteration: int) -> list[Stage]:
                       iteration))
   if iteration == 1:
     # Only the update needs every view's mask and control: the preview comes first, quicker.
-    stages.append(Stage("views", inputs.condition_views, _no_settings, ("original", "select"),
-                        ("views",), "rendering masks and control depth of every training view"))
+    stages.append(Stage("views", inputs.condition_views, inputs.view_settings,
+                        ("original", "select"), ("views",),
+                        "rendering every training view's mask and control depth near the "
+                        "selection"))
   return stages + [
       Stage(f"update{suffix}", bind(propagation.update_image_set),
             bind(propagation.update_settings), (f"sheet{suffix}", "views") + previous,
