@@ -8,6 +8,13 @@ checkpoint was trained on (diffusers' pipelines feed [0, 1]). The output is a
     module, params = load_controlnet("checkpoint/controlnet")
     residuals = jax.jit(module.apply, static_argnames="guess_mode")(
         {"params": params}, latents, timestep, text_states, depth_image, 1.0)
+
+The conditioning embedding depends only on the conditioning image, so a sampler computes it once
+per image (`embed_conditioning`) rather than at every step, and passes it in as
+`conditioning_embedding`. It is convolutions and SiLUs alone: each latent cell depends on a
+bounded patch of pixels (`conditioning_radius`), so where images differ only inside a rectangle
+(a sheet whose slot alone changes) only the cells the rectangle reaches are recomputed
+(`embed_conditioning_region`).
 """
 
 from __future__ import annotations
@@ -47,6 +54,86 @@ class ConditioningEmbedding(nn.Module):
       x = nn.silu(conv(next_channels, f"blocks_{2 * index + 1}", stride=2)(x))
     return conv(self.out_channels, "conv_out")(x)
 
+  @classmethod
+  def of(cls, controlnet: "ControlNet", **module_options) -> "ConditioningEmbedding":
+    """The embedding of `controlnet` (its configuration and compute dtype)."""
+    config = controlnet.config
+    return cls(config.block_out_channels[0], config.conditioning_embedding_out_channels,
+               controlnet.compute_dtype, **module_options)
+
+
+def conditioning_strides(config: model_configs.ControlNetConfig) -> list[int]:
+  """The strides of `ConditioningEmbedding`'s 3 x 3, padding-1 convolutions, in order."""
+  return [1] + [1, 2] * (len(config.conditioning_embedding_out_channels) - 1) + [1]
+
+
+def conditioning_radius(config: model_configs.ControlNetConfig) -> int:
+  """R, in pixels: latent cell i of the conditioning embedding (latent factor f) depends only
+  on pixels f i - R .. f i + R of the conditioning image (along each axis; 11 for three
+  embedding blocks: each 3 x 3 convolution reaches one cell of its input further)."""
+  radius, spacing = 0, 1
+  for stride in conditioning_strides(config):
+    radius += spacing
+    spacing *= stride
+  return radius
+
+
+def _conditioning_image(config: model_configs.ControlNetConfig,
+                        controlnet_cond: jax.Array) -> jax.Array:
+  """The conditioning image [B, H, W, C] checked and in the channel order the model takes."""
+  if controlnet_cond.shape[-1] != config.conditioning_channels:
+    raise InputError(f"controlnet_cond has {controlnet_cond.shape[-1]} channels (NHWC) but "
+                     f"the ControlNet takes {config.conditioning_channels}",
+                     field="controlnet_cond")
+  return controlnet_cond[..., ::-1] if config.conditioning_channel_order == "bgr" else (
+      controlnet_cond)
+
+
+def embed_conditioning(controlnet: "ControlNet", params: dict,
+                       controlnet_cond: jax.Array) -> jax.Array:
+  """The conditioning embedding `controlnet` (with `params`) adds to its input convolution:
+  [B, H, W, conditioning_channels] -> [B, H / f, W / f, block_out_channels[0]] (f the latent
+  factor); pass it to `ControlNet.__call__` as `conditioning_embedding`."""
+  return ConditioningEmbedding.of(controlnet).apply(
+      {"params": params["controlnet_cond_embedding"]},
+      _conditioning_image(controlnet.config, controlnet_cond))
+
+
+def embed_conditioning_region(controlnet: "ControlNet", params: dict, embedding: jax.Array,
+                              controlnet_cond: jax.Array, region: tuple[int, int, int, int]
+                              ) -> jax.Array:
+  """The conditioning embedding of `controlnet_cond` from `embedding`, that of images equal to
+  it outside the pixel rectangle `region`, recomputing only the cells the rectangle reaches.
+
+  Exact (to float rounding): a cell within `conditioning_radius` pixels of the rectangle is
+  recomputed from a window holding every pixel it depends on (the window's edges are image
+  edges or at least that far from it); every other cell depends on no pixel inside it.
+
+  Args:
+    embedding: [1 or B, h, w, E] the embedding of the images `controlnet_cond` differs from.
+    controlnet_cond: [B, H, W, C] the new conditioning images (H = f h, W = f w).
+    region: (top, left, height, width) in pixels: where `controlnet_cond` may differ.
+  Returns:
+    [B, h, w, E].
+  """
+  factor = 2 ** (len(controlnet.config.conditioning_embedding_out_channels) - 1)
+  reach = -(-conditioning_radius(controlnet.config) // factor)  # In cells.
+  top, left, height, width = region
+  batch, cells = controlnet_cond.shape[0], embedding.shape[1:3]
+  # The cells to recompute, [start, stop) per axis, and the window they are computed from.
+  starts = [max(start // factor - reach, 0) for start in (top, left)]
+  stops = [min(-(-(start + size) // factor) + reach, count)
+           for start, size, count in zip((top, left), (height, width), cells)]
+  window_starts = [max(start - reach, 0) for start in starts]
+  window_stops = [min(stop + reach, count) for stop, count in zip(stops, cells)]
+  window = controlnet_cond[:, window_starts[0] * factor:window_stops[0] * factor,
+                           window_starts[1] * factor:window_stops[1] * factor]
+  recomputed = embed_conditioning(controlnet, params, window)[
+      :, starts[0] - window_starts[0]:stops[0] - window_starts[0],
+      starts[1] - window_starts[1]:stops[1] - window_starts[1]]
+  embedding = jnp.broadcast_to(embedding, (batch, *embedding.shape[1:]))
+  return embedding.at[:, starts[0]:stops[0], starts[1]:stops[1]].set(recomputed)
+
 
 def guess_mode_scales(count: int) -> np.ndarray:
   """diffusers' guess-mode weights: 10^linspace(-1, 0, count), from 0.1 (shallowest) to 1 (mid)."""
@@ -82,10 +169,11 @@ class ControlNet(Backbone):
 
   @nn.compact
   def __call__(self, sample: jax.Array, timesteps: jax.Array, encoder_hidden_states: jax.Array,
-               controlnet_cond: jax.Array,
+               controlnet_cond: jax.Array | None,
                controlnet_conditioning_scale: float | jax.Array = 1.0, *,
                guess_mode: bool = False, text_embeds: jax.Array | None = None,
-               time_ids: jax.Array | None = None) -> ControlNetResiduals:
+               time_ids: jax.Array | None = None,
+               conditioning_embedding: jax.Array | None = None) -> ControlNetResiduals:
     """Computes the residuals for the UNet.
 
     Args:
@@ -100,23 +188,20 @@ class ControlNet(Backbone):
       guess_mode: weight residuals from 0.1 (shallowest skip) to 1.0 (mid block) as diffusers
         does; a Python bool (it is part of the compiled program).
       text_embeds, time_ids: SDXL's text_time conditioning.
+      conditioning_embedding: [B, h, w, block_out_channels[0]], `embed_conditioning` of
+        `controlnet_cond` computed already (then `controlnet_cond` may be None).
 
     Returns:
       ControlNetResiduals with one down map per UNet skip and the mid map; with
       global_pool_conditions each map is averaged over height and width ([B, 1, 1, C]).
     """
     config = self.config
-    if controlnet_cond.shape[-1] != config.conditioning_channels:
-      raise InputError(f"controlnet_cond has {controlnet_cond.shape[-1]} channels (NHWC) but "
-                       f"the ControlNet takes {config.conditioning_channels}",
-                       field="controlnet_cond")
-    if config.conditioning_channel_order == "bgr":
-      controlnet_cond = controlnet_cond[..., ::-1]
+    if conditioning_embedding is None:
+      conditioning_embedding = ConditioningEmbedding.of(self, name="controlnet_cond_embedding")(
+          _conditioning_image(config, controlnet_cond))
     time_embedding = self.embed_time(timesteps, sample.shape[0], text_embeds, time_ids)
     context = encoder_hidden_states
-    x = self.input_convolution(sample) + ConditioningEmbedding(
-        config.block_out_channels[0], config.conditioning_embedding_out_channels,
-        self.compute_dtype, name="controlnet_cond_embedding")(controlnet_cond)
+    x = self.input_convolution(sample) + conditioning_embedding
     x, skips = self.down_path(x, time_embedding, context)
     x = self.middle(x, time_embedding, context)
     zero_conv = lambda skip, name: Conv2d(skip.shape[-1], kernel_size=1, padding=0, name=name,

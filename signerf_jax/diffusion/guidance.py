@@ -3,8 +3,9 @@
   * Classifier-free guidance runs the UNet on 2B rows, the unconditional (negative prompt) half
     first, and combines the two predictions: eps_uncond + guidance_scale * (eps_cond -
     eps_uncond). `text_conditioning` lays out the text rows, `classifier_free_guidance` combines.
-  * The ControlNet takes the control image with its conditioning channels (`control_image`) and
-    acts at `controlnet_conditioning_scale` in the steps between control_guidance_start and
+  * The ControlNet takes the control image with its conditioning channels (`control_image`),
+    embedded once per image rather than at every step (`embed_control`), and acts at
+    `controlnet_conditioning_scale` in the steps between control_guidance_start and
     control_guidance_end (`controlnet_conditioning_scale_per_step`, diffusers' `controlnet_keep`).
 `Guidance` carries the traced strengths into `sampler.sample`: new values reuse its compiled
 program.
@@ -18,6 +19,7 @@ import numpy as np
 from flax import struct
 
 from signerf_jax.clip.text import PromptEmbeddings
+from signerf_jax.diffusion import controlnet as controlnet_lib
 from signerf_jax.errors import InputError
 
 
@@ -79,6 +81,14 @@ def control_image(control: jax.Array, channels: int) -> jax.Array:
     raise InputError(f"control has {control.shape[-1]} channels but the ControlNet takes "
                      f"{channels}", field="control")
   return control
+
+
+def embed_control(controlnet: controlnet_lib.ControlNet, params: dict, control: jax.Array
+                  ) -> jax.Array:
+  """The [B, h, w, E] conditioning embedding `controlnet` (with `params`) adds to its input
+  convolution, of the control images [B, H, W, C or 1] in [0, 1] (`control_image`)."""
+  return controlnet_lib.embed_conditioning(
+      controlnet, params, control_image(control, controlnet.config.conditioning_channels))
 
 
 def both_halves(x: jax.Array, guided: bool) -> jax.Array:

@@ -26,6 +26,7 @@ the same random draws (see `sampler.SamplerNoise` for the reference's order). Th
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from pathlib import Path
 from typing import Annotated, Any, Mapping, Sequence
@@ -38,8 +39,8 @@ from signerf_jax import safetensors_io, validation
 from signerf_jax.clip import text as clip_text
 from signerf_jax.clip.tokenizer import Tokenizer, load_tokenizer
 from signerf_jax.diffusion import guidance as guidance_lib
-from signerf_jax.diffusion import (model_configs, pipeline_components, sampler, schedulers,
-                                   solvers)
+from signerf_jax.diffusion import (controlnet as controlnet_lib, layers, model_configs,
+                                   pipeline_components, sampler, schedulers, solvers)
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.layers import Dtype
 from signerf_jax.errors import InputError
@@ -299,11 +300,37 @@ def _as_images(array, name: str, channels: int | None = None) -> jax.Array:
   return array
 
 
+@functools.partial(jax.jit, static_argnames=("region", "winograd_convolutions"))
+def control_embedding(models: sampler.DiffusionModels, control, base=None,
+                      region: tuple[int, int, int, int] | None = None,
+                      winograd_convolutions: bool = True) -> jax.Array:
+  """The ControlNet's embedding of control images (`guidance.embed_control`), which `generate`
+  takes as `control_embedding` instead of computing it.
+
+  Args:
+    models: the pipeline's networks (with a ControlNet).
+    control: [B, H, W, C] in [0, 1], as `generate` takes it.
+    base: None, or [1 or B, h, w, E] the embedding of control images that equal `control`
+      outside the pixel rectangle `region` (top, left, height, width): then only the cells the
+      rectangle reaches are computed (`controlnet.embed_conditioning_region`).
+    winograd_convolutions: as `generate`'s, so that the convolutions round as its would.
+  Returns:
+    [B, H / f, W / f, E] (f the latent factor).
+  """
+  control = guidance_lib.control_image(jnp.asarray(control, jnp.float32),
+                                       models.controlnet.config.conditioning_channels)
+  with layers.winograd_convolutions(winograd_convolutions):
+    if base is None:
+      return controlnet_lib.embed_conditioning(models.controlnet, models.controlnet_params, control)
+    return controlnet_lib.embed_conditioning_region(models.controlnet, models.controlnet_params,
+                                                    base, control, region)
+
+
 def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask,
              control=None, *, key: jax.Array | None = None,
              noise: sampler.SamplerNoise | None = None,
              options: GenerationOptions = GenerationOptions(),
-             winograd_convolutions: bool = True) -> jax.Array:
+             winograd_convolutions: bool = True, control_embedding=None) -> jax.Array:
   """Inpaints B images in one compiled run.
 
   Args:
@@ -318,6 +345,8 @@ def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask
     options: the generation knobs.
     winograd_convolutions: False compiles faster and samples slower
       (`sampler.SamplerSettings`; docs/performance.md): for a program that runs a few times.
+    control_embedding: [B, H / f, W / f, E], the module's `control_embedding` of `control` when
+      computed already (e.g. for images whose control differs only in a region), else None.
 
   Returns:
     [B, H, W, 3] float32 images in [0, 1].
@@ -342,5 +371,5 @@ def generate(pipeline: Pipeline, prompt: clip_text.PromptEmbeddings, image, mask
         setup.schedule.num_steps)
   return sampler.program(pipeline.models)(
       pipeline.models, setup.schedule, prompt, setup.time_ids,
-      sampler.InpaintingInputs(image, mask, control), noise, setup.guidance,
+      sampler.InpaintingInputs(image, mask, control, control_embedding), noise, setup.guidance,
       settings=setup.settings)

@@ -3,8 +3,8 @@
 `sample` runs what diffusers' `StableDiffusionControlNetInpaintPipeline` and
 `StableDiffusionXLControlNetInpaintPipeline` do between preprocessing the inputs and
 post-processing the output, in one `jit`: mask binarisation and downsampling, VAE encoding of the
-image and the masked image, the initial latents (`prepare_latents`, including img2img strength),
-the whole denoising loop under `lax.scan`, VAE decoding and an optional paste-back. The loop
+image and the masked image, the control image's embedding, the initial latents (img2img strength
+included), the denoising loop under `lax.scan`, VAE decoding and an optional paste-back. The loop
 carries only the latents and the solver state, so no per-step activation outlives its step.
 
 What each step computes (B samples; "2B" under classifier-free guidance, unconditional half first):
@@ -25,13 +25,11 @@ start from the image or from noise, paste-back and its blur radius). Traced (new
 compiled program): all parameters, prompt embeddings, SDXL time ids, images, masks, control
 images, noise, `guidance_scale`, the per-step ControlNet scales and the schedule's arrays.
 
-Batching: every per-sample input leads with the batch axis B (images, masks, control images,
-every noise field; prompt embeddings and time ids have B rows or one shared row), and sample b
-depends only on row b of each. So a batch of views is one call; `jax.vmap` over a further
-leading axis (in_axes 0 for the per-sample inputs, None for models, schedule, guidance and
-settings) gives the same as flattening it into B, and `shard_map` can split B across devices.
-Noise drawn by `draw_noise` from per-sample keys keeps the property: a batch with keys
-(k0, k1) equals two single-sample calls with k0 and k1.
+Batching: every per-sample input (images, masks, control images, noise) leads with the batch
+axis B (prompt embeddings and time ids: B rows or one shared row), and sample b depends only on
+row b of each: a batch of views is one call, `jax.vmap` over a further leading axis (in_axes 0
+for the per-sample inputs, None for the rest) equals flattening it into B, and `shard_map` can
+split B across devices. Noise drawn by `draw_noise` from per-sample keys keeps the property.
 
 Numerical conventions that match diffusers exactly (the mask's are `mask_processing`'s):
   * images in [0, 1] are mapped to [-1, 1] for the VAE and decoded images back with
@@ -116,10 +114,12 @@ class InpaintingInputs:
       binarised for the diffusion model and used as is (optionally blurred) for the paste-back.
     control: [B, H, W, C] float32 in [0, 1], the ControlNet's conditioning image (C = its
       conditioning channels, or 1 for a grey image broadcast to them), or None without ControlNet.
+    control_embedding: [B, h, w, E] `guidance.embed_control` of `control` if computed already.
   """
   image: jax.Array
   mask: jax.Array
   control: jax.Array | None = None
+  control_embedding: jax.Array | None = None
 
 
 @struct.dataclass
@@ -170,8 +170,7 @@ class SamplerSettings:
 
 
 @functools.partial(jax.jit, static_argnames=("latent_shape", "num_steps"))
-def draw_noise(keys: jax.Array, latent_shape: tuple[int, int, int], num_steps: int
-               ) -> SamplerNoise:
+def draw_noise(keys: jax.Array, latent_shape: tuple[int, int, int], num_steps: int) -> SamplerNoise:
   """Standard-normal `SamplerNoise` from one PRNG key per sample.
 
   Args:
@@ -203,7 +202,7 @@ class _LoopConstants:
   text_states: jax.Array
   text_embeds: jax.Array | None
   time_ids: jax.Array | None
-  control: jax.Array | None  # [B, H, W, C] in [0, 1].
+  control_embedding: jax.Array | None  # [B, h, w, E], the control images' embedding.
   mask: jax.Array  # [B, h, w, 1] binary.
   masked_image_latents: jax.Array | None  # Inpainting UNets.
   image_latents: jax.Array | None  # Starting from the image, and latent blending.
@@ -211,8 +210,7 @@ class _LoopConstants:
 
 
 def _check_inputs(models: DiffusionModels, inputs: InpaintingInputs) -> None:
-  """Raises InputError unless the image size fits the VAE and a control image comes exactly
-  with a ControlNet."""
+  """Raises InputError unless the image size fits the VAE and a ControlNet gets control images."""
   height, width = inputs.image.shape[1:3]
   factor = models.latent_factor
   if height % factor or width % factor:
@@ -249,7 +247,7 @@ def _loop_constants(models: DiffusionModels, prompt: PromptEmbeddings,
                     time_ids: jax.Array | None, inputs: InpaintingInputs, noise: SamplerNoise,
                     settings: SamplerSettings) -> _LoopConstants:
   """What the steps read: the encoded images, the mask at latent resolution, the text rows of
-  the UNet batch and the control image."""
+  the UNet batch and the control images' embedding."""
   batch, height, width = inputs.image.shape[:3]
   factor = models.latent_factor
   binary_mask = mask_processing.binarize_mask(inputs.mask)
@@ -257,13 +255,13 @@ def _loop_constants(models: DiffusionModels, prompt: PromptEmbeddings,
                                                        settings)
   text_states, text_embeds, batch_time_ids = guidance_lib.text_conditioning(
       prompt, time_ids, batch, settings.classifier_free_guidance)
-  control = None
-  if inputs.control is not None:
-    control = guidance_lib.control_image(inputs.control,
-                                         models.controlnet.config.conditioning_channels)
+  control_embedding = inputs.control_embedding
+  if inputs.control is not None and control_embedding is None:
+    control_embedding = guidance_lib.embed_control(models.controlnet, models.controlnet_params,
+                                                   inputs.control)
   return _LoopConstants(
       text_states=text_states, text_embeds=text_embeds, time_ids=batch_time_ids,
-      control=control,
+      control_embedding=control_embedding,
       mask=mask_processing.downsample_mask(binary_mask, height // factor, width // factor),
       masked_image_latents=masked_image_latents, image_latents=image_latents,
       initial_noise=noise.latents)
@@ -279,20 +277,22 @@ def _predict_noise(models: DiffusionModels, constants: _LoopConstants, settings:
   residuals = None
   if models.controlnet is not None:
     controlnet = functools.partial(
-        models.controlnet.apply, {"params": models.controlnet_params},
+        models.controlnet.apply, {"params": models.controlnet_params}, controlnet_cond=None,
         controlnet_conditioning_scale=guidance.controlnet_conditioning_scale[step_index],
         guess_mode=settings.guess_mode)
     if settings.guess_mode and guided:
       # The ControlNet sees only the conditional half; the unconditional half gets nothing.
       conditional = lambda x: None if x is None else x[model_input.shape[0]:]
       residuals = controlnet(model_input, timestep, conditional(constants.text_states),
-                             constants.control, text_embeds=conditional(constants.text_embeds),
-                             time_ids=conditional(constants.time_ids))
+                             text_embeds=conditional(constants.text_embeds),
+                             time_ids=conditional(constants.time_ids),
+                             conditioning_embedding=constants.control_embedding)
       residuals = jax.tree.map(lambda r: jnp.concatenate([jnp.zeros_like(r), r]), residuals)
     else:
       residuals = controlnet(batch_latents, timestep, constants.text_states,
-                             guidance_lib.both_halves(constants.control, guided),
-                             text_embeds=constants.text_embeds, time_ids=constants.time_ids)
+                             text_embeds=constants.text_embeds, time_ids=constants.time_ids,
+                             conditioning_embedding=guidance_lib.both_halves(
+                                 constants.control_embedding, guided))
   unet_input = batch_latents
   if models.inpainting_unet:
     unet_input = jnp.concatenate(

@@ -114,11 +114,32 @@ class Generator:
     Returns:
       [n, H, W, 3] float32 in [0, 1].
     """
-    output = pipeline_lib.generate(
-        self.pipeline, self.prompt, self.shard(image), self.shard(mask), self.shard(control),
-        key=self.shard(keys, jnp.uint32), options=self.options,
-        winograd_convolutions=self.winograd_convolutions)
+    output = self.dispatch(image, mask, control, keys)
     return np.asarray(jax.device_get(output))[:len(keys)]
+
+  def dispatch(self, image, mask, control, keys, control_embedding=None) -> jax.Array:
+    """`__call__`'s generation, returned as soon as it is dispatched (JAX computes it
+    asynchronously; reading the array waits), padded: [batch_size, H, W, 3] sharded along
+    "views", row i < n the sample of keys[i]; `control_embedding` ([n, H / f, W / f, E]), the
+    control's `control_embedding` when computed already. The sampler is always given it
+    (computed here when not), so that every call of one size runs one compiled sampler."""
+    control = self.shard(control)
+    if control_embedding is None:
+      control_embedding = self.control_embedding(control)
+    return pipeline_lib.generate(
+        self.pipeline, self.prompt, self.shard(image), self.shard(mask), control,
+        key=self.shard(keys, jnp.uint32), options=self.options,
+        winograd_convolutions=self.winograd_convolutions,
+        control_embedding=self.shard(control_embedding))
+
+  def control_embedding(self, control, base=None, region=None) -> jax.Array:
+    """The ControlNet's embedding of control images [n, H, W, C] (`pipeline.control_embedding`,
+    rounding as this generator's sampler would): [n, H / f, W / f, E]; with `base` (the
+    embedding [1 or n, ...] of controls equal to `control` outside the pixel rectangle
+    `region`, (top, left, height, width)), only the cells the rectangle reaches are computed."""
+    return pipeline_lib.control_embedding(
+        self.pipeline.models, control, base, region,
+        winograd_convolutions=self.winograd_convolutions)
 
 
 def cpu_lacks_bf16_instructions() -> bool:

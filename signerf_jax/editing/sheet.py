@@ -86,6 +86,12 @@ class SheetLayout:
     return ((self.slot_row % self.rows) * cell_height,
             (self.slot_column % self.columns) * cell_width)
 
+  @property
+  def slot_region(self) -> tuple[int, int, int, int]:
+    """(top, left, height, width) in pixels of the slot's cell, padding included: all the
+    image set update changes in a sheet's inputs."""
+    return (*self.slot_offset, *self.padded_tile_shape)
+
 
 def _pad_tiles(tiles: jax.Array, layout: SheetLayout, is_mask: bool) -> jax.Array:
   """[..., h, w, C] -> [..., cell_height, cell_width, C], padding bottom and right."""
@@ -142,6 +148,12 @@ def disassemble(sheet, layout: SheetLayout):
   cells = cells[:, :layout.tile_height, :layout.tile_width]
   slot = cells[layout.slot_index]
   return jnp.delete(cells, layout.slot_index, axis=0, assume_unique_indices=True), slot
+
+
+@functools.partial(jax.jit, static_argnames=("layout",))
+def slot_tiles(sheets, layout: SheetLayout) -> jax.Array:
+  """[B, SH, SW, C] sheets -> [B, tile_height, tile_width, C] their slots (`disassemble`)."""
+  return jax.vmap(lambda sheet: disassemble(sheet, layout)[1])(sheets)
 
 
 @functools.partial(jax.jit, static_argnames=("layout",))

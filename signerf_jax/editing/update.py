@@ -1,11 +1,15 @@
 """Step 6, the image set update: every dataset view, in the empty slot of the fixed reference
 sheet, inpainted so that the sheet's appearance carries over (paper, "Image Set Update").
 
-For a batch of views (`SlotViews`: full-resolution images, masks, control depth and the box each
-tile is cut from):
+What does not change from view to view is computed once per update (`SlotSheet`): the sheet on
+the devices and the ControlNet's embedding of its control (the prompt's embeddings are the
+generator's, encoded when it is loaded). For a batch of views (`SlotViews`: full-resolution
+images, masks, control depth and the box each tile is cut from), padded to the generator's batch
+size so that every batch, the last included, runs the same compiled programs:
   1. each view is cut into a tile (`crops.crop_to_tiles`: the whole frame, letterboxed, or a crop
      around the selection) and placed in the sheet's slot (`sheet.slot_update_inputs`, vmapped
-     over the batch); only the slot is masked;
+     over the batch); only the slot is masked, and only the control embedding's cells the slot
+     reaches are recomputed (`controlnet.embed_conditioning_region`);
   2. the batch is inpainted in one call, sharded over the devices along "views"
      (`generation.Generator`);
   3. the slot is cut out of each generated sheet and pasted back into the full-resolution image
@@ -16,7 +20,8 @@ of those views, so every run forms the same batches; each finished view is writt
 (its generated tile, then the edited image, which marks it done), and a restarted run skips the
 views already written and recomputes only the batches that still hold unwritten views. With the
 per-view keys of `generation.view_key`, a resumed update writes exactly the images an
-uninterrupted one does.
+uninterrupted one does. A batch is written while the next one is computed (JAX dispatches it
+asynchronously), so the PNG encoding and disk writes cost no sampling time.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import numpy as np
 import tqdm
 
 from signerf_jax import camera as camera_lib
-from signerf_jax import files
+from signerf_jax import files, parallel
 from signerf_jax.editing import crops
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator, view_key
@@ -46,7 +51,8 @@ TILE_FILL_COLOR = 0.5  # Tile pixels outside the source image: neutral grey, nev
 
 @dataclasses.dataclass(frozen=True)
 class SlotViews:
-  """A batch of dataset views at full resolution, [n, ...].
+  """A batch of dataset views at full resolution, [n, ...] (host arrays; `padded_tiles` makes a
+  padded copy on the devices).
 
   Attributes:
     images: [n, H, W, 3] float32 in [0, 1], what goes into the slot.
@@ -73,34 +79,77 @@ def tile_boxes(cameras: camera_lib.Cameras, layout: sheet_lib.SheetLayout, selec
       margin, max_upscale))
 
 
+@dataclasses.dataclass(frozen=True)
+class SlotSheet:
+  """The generated reference sheet as every batch of an update reads it (made once per update).
+
+  Attributes:
+    rgb: [SH, SW, 3] float32 the sheet, on every device of the generator's mesh.
+    control: [SH, SW, C] float32 its control, likewise.
+    control_embedding: [1, SH / f, SW / f, E] the ControlNet's embedding of `control` (f the
+      latent factor); a view's differs only in the cells its slot reaches.
+  """
+
+  rgb: jax.Array
+  control: jax.Array
+  control_embedding: jax.Array
+
+  @classmethod
+  def prepare(cls, generator: Generator, sheet_rgb, sheet_control) -> "SlotSheet":
+    """From the sheet [SH, SW, 3] and its control [SH, SW, C] (host or device arrays); the
+    embedding by the program that embeds the generator's batches (no compilation of its own)."""
+    rgb, control = (jax.device_put(jnp.asarray(array, jnp.float32),
+                                   parallel.replicated(generator.mesh))
+                    for array in (sheet_rgb, sheet_control))
+    embedding = generator.control_embedding(generator.shard(control[None]))[:1]
+    return cls(rgb, control, jax.device_put(embedding, parallel.replicated(generator.mesh)))
+
+
+def padded_tiles(generator: Generator, views: SlotViews, layout: sheet_lib.SheetLayout):
+  """(the views padded to the generator's batch size B and sharded like its inputs, their tiles
+  (image [B, h, w, 3], control [B, h, w, 1], mask [B, h, w, 1]))."""
+  padded = SlotViews(*(generator.shard(getattr(views, field.name))
+                       for field in dataclasses.fields(SlotViews)))
+  tiles = tuple(crops.crop_to_tiles(array, padded.boxes, layout.tile_height, layout.tile_width,
+                                    fill_value=fill)
+                for array, fill in ((padded.images, TILE_FILL_COLOR),
+                                    (padded.controls[..., None], 0.0),
+                                    (padded.masks[..., None], 0.0)))
+  return padded, tiles
+
+
 def update_batch(generator: Generator, sheet_rgb, sheet_control, layout: sheet_lib.SheetLayout,
                  views: SlotViews, keys) -> tuple[np.ndarray, np.ndarray]:
-  """Inpaints a batch of views in the sheet's slot and pastes the results back.
+  """Inpaints a batch of views in the sheet's slot and pastes the results back (the sheet made
+  ready for this batch alone; an update makes it ready once: `batch_editor`).
 
   Args:
     generator: the sharded generator (at most `batch_size` views).
     sheet_rgb: [SH, SW, 3] the generated reference sheet; sheet_control: [SH, SW, 1].
     layout: the sheet layout.
-    views: the batch's views.
+    views: the batch's n views.
     keys: [n, 2] uint32 key data, one per view.
   Returns:
     edited: [n, H, W, 3] float32 full-resolution images; slots: [n, h, w, 3] the generated tiles.
   """
-  height, width = layout.tile_height, layout.tile_width
-  boxes = jnp.asarray(views.boxes, jnp.float32)
-  tiles = [crops.crop_to_tiles(jnp.asarray(array, jnp.float32), boxes, height, width,
-                               fill_value=fill)
-           for array, fill in ((views.images, TILE_FILL_COLOR), (views.controls[..., None], 0.0),
-                               (views.masks[..., None], 0.0))]
-  # The vmapped slot assembly runs on the sharded batch, like the generation after it.
-  image, control, mask = sheet_lib.slot_update_inputs(
-      jnp.asarray(sheet_rgb, jnp.float32), jnp.asarray(sheet_control, jnp.float32),
-      *(generator.shard(tile) for tile in tiles), layout=layout)
-  generated = generator(image, mask, control, keys)
-  slots = jax.vmap(lambda sheet: sheet_lib.disassemble(sheet, layout)[1])(generated)
-  edited = crops.paste_tiles(jnp.asarray(views.images, jnp.float32), slots, boxes,
-                             jnp.asarray(views.masks, jnp.float32))
-  return np.asarray(edited), np.asarray(slots)
+  sheet = SlotSheet.prepare(generator, sheet_rgb, sheet_control)
+  return tuple(np.asarray(array) for array in dispatch_update(generator, sheet, layout, views,
+                                                              keys))
+
+
+def dispatch_update(generator: Generator, sheet: SlotSheet, layout: sheet_lib.SheetLayout,
+                    views: SlotViews, keys) -> tuple[jax.Array, jax.Array]:
+  """`update_batch` with the sheet made ready (`SlotSheet.prepare`), returned as soon as it is
+  dispatched: the same (edited, slots), which JAX computes asynchronously (reading them waits).
+  """
+  padded, tiles = padded_tiles(generator, views, layout)
+  image, control, mask = sheet_lib.slot_update_inputs(sheet.rgb, sheet.control, *tiles,
+                                                      layout=layout)
+  embedding = generator.control_embedding(control, sheet.control_embedding, layout.slot_region)
+  generated = generator.dispatch(image, mask, control, keys, embedding)
+  slots = sheet_lib.slot_tiles(generated, layout)
+  edited = crops.paste_tiles(padded.images, slots, padded.boxes, padded.masks)
+  return edited[:len(keys)], slots[:len(keys)]
 
 
 def edited_image_path(directory: str | os.PathLike, view_index: int) -> Path:
@@ -115,32 +164,49 @@ def independent_batch(generator: Generator, layout: sheet_lib.SheetLayout, views
 
   Args and returns as `update_batch`, without the sheet.
   """
-  height, width = layout.tile_height, layout.tile_width
-  boxes = jnp.asarray(views.boxes, jnp.float32)
-  image, control, mask = (
-      crops.crop_to_tiles(jnp.asarray(array, jnp.float32), boxes, height, width, fill_value=fill)
-      for array, fill in ((views.images, TILE_FILL_COLOR), (views.controls[..., None], 0.0),
-                          (views.masks[..., None], 0.0)))
-  tiles = generator(image, mask, control, keys)
-  edited = crops.paste_tiles(jnp.asarray(views.images, jnp.float32), tiles, boxes,
-                             jnp.asarray(views.masks, jnp.float32))
-  return np.asarray(edited), np.asarray(tiles)
+  return tuple(np.asarray(array) for array in dispatch_independent(generator, layout, views,
+                                                                   keys))
 
 
-# How a batch of views is edited: (views, keys [n, 2]) -> (edited images, generated tiles).
-EditBatch = Callable[[SlotViews, np.ndarray], tuple[np.ndarray, np.ndarray]]
+def dispatch_independent(generator: Generator, layout: sheet_lib.SheetLayout, views: SlotViews,
+                         keys) -> tuple[jax.Array, jax.Array]:
+  """`independent_batch`, returned as soon as it is dispatched (as `dispatch_update`)."""
+  padded, (image, control, mask) = padded_tiles(generator, views, layout)
+  tiles = generator.dispatch(image, mask, control, keys)
+  edited = crops.paste_tiles(padded.images, tiles, padded.boxes, padded.masks)
+  return edited[:len(keys)], tiles[:len(keys)]
+
+
+# How a batch of views is edited: (views, keys [n, 2]) -> (edited images, generated tiles), both
+# dispatched (`dispatch_update`).
+EditBatch = Callable[[SlotViews, np.ndarray], tuple[jax.Array, jax.Array]]
 
 
 def batch_editor(generator: Generator, layout: sheet_lib.SheetLayout, propagation: str,
                  sheet_rgb=None, sheet_control=None) -> EditBatch:
-  """The `EditBatch` of a propagation mode: "sheet" (`update_batch`, through the sheet's slot)
-  or "independent" (`independent_batch`)."""
+  """The `EditBatch` of a propagation mode: "sheet" (`update_batch`, through the slot of the sheet
+  [SH, SW, 3] with control [SH, SW, C], made ready once here) or "independent"
+  (`independent_batch`)."""
   if propagation == "sheet":
-    return functools.partial(update_batch, generator, sheet_rgb, sheet_control, layout)
+    return functools.partial(dispatch_update, generator,
+                             SlotSheet.prepare(generator, sheet_rgb, sheet_control), layout)
   if propagation == "independent":
-    return functools.partial(independent_batch, generator, layout)
+    return functools.partial(dispatch_independent, generator, layout)
   raise InputError(f"must be 'sheet' or 'independent', got {propagation!r}",
                    field="UpdateConfig.propagation")
+
+
+def _write_views(directory: Path, batch: np.ndarray, todo: set[int], edited, slots,
+                 on_view_written: Callable[[int], None]) -> int:
+  """Writes the tiles and images of a batch's views in `todo` (waiting for them to be
+  computed); calls `on_view_written` after each; returns how many were written."""
+  edited, slots = np.asarray(edited), np.asarray(slots)
+  for index, image, slot in zip(batch, edited, slots):
+    if int(index) in todo:
+      files.write_image(directory / TILES_FOLDER / f"{frame_name(int(index))}.png", slot)
+      files.write_image(edited_image_path(directory, int(index)), image)
+      on_view_written(int(index))
+  return len(todo)
 
 
 def run_update(generator: Generator, edit_batch: EditBatch, view_indices: Sequence[int],
@@ -162,7 +228,7 @@ def run_update(generator: Generator, edit_batch: EditBatch, view_indices: Sequen
     {"edited": views written by this call, "resumed": views found already written,
      "batches": batches computed, "batch_size", "devices"}.
   """
-  view_indices = np.asarray(view_indices, np.int64)
+  view_indices, directory = np.asarray(view_indices, np.int64), Path(directory)
   batch_size = generator.batch_size
   batches = [view_indices[start:start + batch_size]
              for start in range(0, len(view_indices), batch_size)]
@@ -170,22 +236,27 @@ def run_update(generator: Generator, edit_batch: EditBatch, view_indices: Sequen
   resumed = int(sum(done(index) for index in view_indices))
   bar = tqdm.tqdm(total=len(view_indices), initial=resumed, unit="view", disable=not progress,
                   desc="image set update", dynamic_ncols=True)
-  edited_count, computed = 0, 0
+
+  def written(view_index: int) -> None:
+    bar.update(1)
+    on_view_written(view_index)
+
+  edited_count, computed, pending = 0, 0, None  # pending: the batch dispatched last, unwritten.
   for batch in batches:
-    todo = [int(index) for index in batch if not done(index)]
+    todo = {int(index) for index in batch if not done(index)}
     if not todo:
       continue
     keys = np.stack([view_key(seed, int(index)) for index in batch])
-    edited, slots = edit_batch(load_views(batch), keys)
-    computed += 1
-    for index, image, slot in zip(batch, edited, slots):
-      if int(index) not in todo:
-        continue
-      files.write_image(Path(directory) / TILES_FOLDER / f"{frame_name(int(index))}.png", slot)
-      files.write_image(edited_image_path(directory, int(index)), image)
-      edited_count += 1
-      bar.update(1)
-      on_view_written(int(index))
+    try:
+      dispatched = (batch, todo, *edit_batch(load_views(batch), keys))
+      computed += 1
+    finally:  # While this batch computes (or when it failed), the one before is written.
+      if pending is not None:
+        edited_count += _write_views(directory, *pending, written)
+        pending = None
+    pending = dispatched
+  if pending is not None:
+    edited_count += _write_views(directory, *pending, written)
   bar.close()
   return {"edited": edited_count, "resumed": resumed, "batches": computed,
           "batch_size": batch_size, "devices": generator.mesh.size}
