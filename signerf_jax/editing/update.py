@@ -38,7 +38,7 @@ import numpy as np
 import tqdm
 
 from signerf_jax import camera as camera_lib
-from signerf_jax import files, parallel
+from signerf_jax import distributed, files, parallel
 from signerf_jax.editing import crops
 from signerf_jax.editing import sheet as sheet_lib
 from signerf_jax.editing.generation import Generator, view_key
@@ -133,8 +133,7 @@ def update_batch(generator: Generator, sheet_rgb, sheet_control, layout: sheet_l
     edited: [n, H, W, 3] float32 full-resolution images; slots: [n, h, w, 3] the generated tiles.
   """
   sheet = SlotSheet.prepare(generator, sheet_rgb, sheet_control)
-  return tuple(np.asarray(array) for array in dispatch_update(generator, sheet, layout, views,
-                                                              keys))
+  return distributed.to_host(dispatch_update(generator, sheet, layout, views, keys))
 
 
 def dispatch_update(generator: Generator, sheet: SlotSheet, layout: sheet_lib.SheetLayout,
@@ -164,8 +163,7 @@ def independent_batch(generator: Generator, layout: sheet_lib.SheetLayout, views
 
   Args and returns as `update_batch`, without the sheet.
   """
-  return tuple(np.asarray(array) for array in dispatch_independent(generator, layout, views,
-                                                                   keys))
+  return distributed.to_host(dispatch_independent(generator, layout, views, keys))
 
 
 def dispatch_independent(generator: Generator, layout: sheet_lib.SheetLayout, views: SlotViews,
@@ -200,7 +198,8 @@ def _write_views(directory: Path, batch: np.ndarray, todo: set[int], edited, slo
                  on_view_written: Callable[[int], None]) -> int:
   """Writes the tiles and images of a batch's views in `todo` (waiting for them to be
   computed); calls `on_view_written` after each; returns how many were written."""
-  edited, slots = np.asarray(edited), np.asarray(slots)
+  # Gathered from every process when the batch is spread over several.
+  edited, slots = distributed.to_host((edited, slots))
   for index, image, slot in zip(batch, edited, slots):
     if int(index) in todo:
       files.write_image(directory / TILES_FOLDER / f"{frame_name(int(index))}.png", slot)

@@ -116,10 +116,11 @@ def select(context: EditContext) -> str:
 def view_settings(context: EditContext) -> dict[str, Any]:
   """The views stage's key: what decides the update's tiles, whose source pixels it renders
   (`tile_sources`)."""
-  sheet, layout = context.settings.sheet, context.layout
+  sheet = context.settings.sheet
+  # Without a tile size the model's native one: named by the model (not read from it).
   return {"crops": sheet.crops, "crop_margin": sheet.crop_margin,
           "crop_max_upscale": sheet.crop_max_upscale,
-          "tile_size": [layout.tile_height, layout.tile_width]}
+          "tile_size": sheet.tile_size or f"native to {context.settings.edit.model}"}
 
 
 def tile_sources(context: EditContext) -> np.ndarray:
