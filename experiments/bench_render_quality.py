@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import json
 import subprocess
 import sys
@@ -60,10 +61,16 @@ def with_fraction(run, fraction: float):
 
 
 def measure(run, held_out) -> dict[str, Any]:
-  """Rays/s and mean PSNR over every held-out view."""
-  render.render_cameras(run.model, run.variables, held_out.cameras.take([0]), CHUNK_SIZE)
+  """Rays/s and mean PSNR over every held-out view, rendering every sample of the fraction
+  (where the code renders front to back by default, `settings=None` asks for every sample:
+  experiments/bench_render_speed.py measures the front-to-back settings)."""
+  every_sample = ({"settings": None} if "settings" in inspect.signature(
+      render.render_cameras).parameters else {})
+  render.render_cameras(run.model, run.variables, held_out.cameras.take([0]), CHUNK_SIZE,
+                        **every_sample)
   started = time.perf_counter()
-  renders = render.render_cameras(run.model, run.variables, held_out.cameras, CHUNK_SIZE)
+  renders = render.render_cameras(run.model, run.variables, held_out.cameras, CHUNK_SIZE,
+                                  **every_sample)
   seconds = time.perf_counter() - started
   rays = held_out.num_images * held_out.width * held_out.height
   psnrs = [float(image_metrics.psnr_jit(renders["rgb"][index], held_out.images[index]))

@@ -62,7 +62,8 @@ class Capacity:
     samples_per_ray: intervals per ray for the radiance field (proposal sampler).
     render_sample_fraction: rendering (not training) takes this fraction of the radiance
       field's intervals per ray; the proposal networks keep all of theirs (`sample_counts`;
-      see `CapacityRules`).
+      see `CapacityRules`). Rendering front to back (`render.render_cameras`' default) takes
+      at most `front_to_back.RenderSettings.field_sample_fraction`.
     proposal_finest_resolution, proposal_log2_table_size: the proposal networks' grids.
     near_gradient_scaling: scale each sample's gradients by its squared distance from the
       camera, up to the cameras' distance to the scene ("Floaters No More";
@@ -167,9 +168,10 @@ class CapacityRules(validation.CheckedFields):
     render_sample_fraction: the share of the radiance field's intervals per ray rendering
       takes (1: render as trained); the proposal networks keep theirs, as scaling them too
       loses more quality for the same speed-up. Fewer field samples render faster for a loss
-      of quality that grows as the fraction shrinks (docs/performance.md), so rendering takes
-      every sample unless asked; the viewer's moving-camera frames take a third
-      (`viewer.progressive.MOVING_SAMPLE_FRACTION`).
+      of quality that grows as the fraction shrinks (docs/performance.md), so the model takes
+      every sample unless asked; rendering front to back takes two thirds at most
+      (`front_to_back.RenderSettings.field_sample_fraction`: 0.1 dB on stitch), and the
+      viewer's moving-camera frames a third (`viewer.progressive.MOVING_SAMPLE_FRACTION`).
     pixel_samples: `Capacity.pixel_samples`; None derives it: 2 for sparse bounded captures
       (fewer than `SPARSE_VIEWS` training views), 1 otherwise. Between so few views the field is
       unconstrained, and one ray through each pixel's centre fits a photo's pixel (the mean

@@ -85,7 +85,7 @@ def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset,
   if supersampling is None:
     supersampling = model.capacity.pixel_samples
   renders = render.render_cameras(model, variables, dataset.cameras, chunk_size, near_distance,
-                                  supersampling=supersampling)
+                                  supersampling=supersampling, settings=render.HELD_OUT)
   psnrs = [float(image_metrics.psnr_jit(renders["rgb"][i], dataset.images[i]))
            for i in range(dataset.num_images)]
   ssims = [float(image_metrics.ssim_jit(renders["rgb"][i], dataset.images[i]))

@@ -104,6 +104,11 @@ class RadianceField(nn.Module):
     """points: [..., 3] unit cube -> [...] densities."""
     return self._geometry(points, level_weights)[0]
 
+  def geometry(self, points, level_weights=None):
+    """points: [..., 3] unit cube -> density [...] and the geometry features the colour takes
+    [..., GEOMETRY_FEATURES] (rendering evaluates the colour only where it is seen: `colour`)."""
+    return self._geometry(points, level_weights)
+
   def __call__(self, points, directions, appearance_indices=None, level_weights=None):
     """Density and colour.
 
@@ -116,14 +121,18 @@ class RadianceField(nn.Module):
       density [...] >= 0 and rgb [..., 3] in [0, 1].
     """
     density, geometry = self._geometry(points, level_weights)
+    return density, self.colour(geometry, directions, appearance_indices)
+
+  def colour(self, geometry, directions, appearance_indices=None):
+    """rgb [..., 3] in [0, 1] from geometry features [..., GEOMETRY_FEATURES] (`geometry`), unit
+    directions [..., 3] and appearance indices (None or [...], as `__call__`)."""
     inputs: Sequence[jax.Array] = [geometry, spherical_harmonics(directions, self.sh_degree)]
     if self.num_appearance_embeddings:
-      indices = jnp.zeros(points.shape[:-1], jnp.int32) if appearance_indices is None else (
+      indices = jnp.zeros(geometry.shape[:-1], jnp.int32) if appearance_indices is None else (
           appearance_indices)
       embedding = self.appearance(jnp.clip(indices, 0, self.num_appearance_embeddings - 1))
       # A novel view has no code of its own: it gets the training views' average appearance
       # (nerfacto's choice), not the zero code, which training never anchors.
       average = jnp.mean(self.appearance.embedding, axis=0)
       inputs.append(jnp.where((indices >= 0)[..., None], embedding, average))
-    rgb = nn.sigmoid(self.color_mlp(jnp.concatenate(inputs, axis=-1)))
-    return density, rgb
+    return nn.sigmoid(self.color_mlp(jnp.concatenate(inputs, axis=-1)))

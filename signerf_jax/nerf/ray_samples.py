@@ -141,20 +141,36 @@ def _occupied_marching_edges(model, rays: Rays, interval, march: OccupiedMarch):
   return edges.at[:, -1].set(t_far)
 
 
-def _occupancy_samples(model, variables, rays, key, training, interval, finish, march):
-  capacity = model.capacity
-  occupied_grid = occupancy.occupied_cells(variables["occupancy"], model.march_step,
-                                           OCCUPANCY_MIN_ALPHA)
+def occupied_samples(model, variables: Variables, rays: Rays, key, training: bool, interval,
+                     march: OccupiedMarch | None = None, occupied_grid=None):
+  """The occupancy sampler's march along rays [R] over `interval` (near [R], far [R]).
+
+  Args:
+    occupied_grid: None, or the occupied cells [G, G, G] bool if known already (rendering).
+  Returns:
+    edges [R, N + 1] (not finished), unit-cube points [R, N, 3] at their midpoints, and
+    [R, N] bool: the samples in occupied cells (with a non-empty interval).
+  """
+  if occupied_grid is None:
+    occupied_grid = occupancy.occupied_cells(variables["occupancy"], model.march_step,
+                                             OCCUPANCY_MIN_ALPHA)
   if march is None:
     t_near, t_far = interval
-    edges = sampling.marching_edges(key, t_near, t_far, model.march_step, capacity.march_steps,
-                                    training)
+    edges = sampling.marching_edges(key, t_near, t_far, model.march_step,
+                                    model.capacity.march_steps, training)
   else:
     edges = _occupied_marching_edges(model, rays, interval, march)
   centres = sampling.midpoints(edges)
   unit_points = model.to_unit_cube(rays.origins[:, None] + centres[..., None] *
                                    rays.directions[:, None])  # [R, N, 3]
   mask = occupancy.lookup(occupied_grid, unit_points) & (edges[:, 1:] > edges[:, :-1])
+  return edges, unit_points, mask
+
+
+def _occupancy_samples(model, variables, rays, key, training, interval, finish, march):
+  capacity = model.capacity
+  edges, unit_points, mask = occupied_samples(model, variables, rays, key, training, interval,
+                                              march)
   num_rays, num_steps = mask.shape
   inputs = (functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
             _appearance(model, rays, training))
@@ -171,9 +187,20 @@ def _occupancy_samples(model, variables, rays, key, training, interval, finish, 
   return along_rays, ray_complete, {"proposals": [], "samples_evaluated": samples}
 
 
-def _proposal_samples(model, variables, rays, key, training, interval, finish):
+def proposal_edges(model, params, rays: Rays, key, training: bool, interval, finish: bool,
+                   proposal_density=None):
+  """The proposal networks' resampling (mip-NeRF 360): each network's density along its
+  intervals places the next set of intervals, the last set the field's.
+
+  Args:
+    params: the model's parameters ({"proposal_0", ...}).
+    proposal_density: None (`DensityField` at the intervals' midpoints), or a function
+      (network index, points [R, M, 3], finished edges [R, M + 1]) -> densities [R, M] that
+      computes them another way (rendering: front to back, `front_to_back`).
+  Returns:
+    the field's edges [R, N + 1] (not finished) and [(finished edges, weights)] per network.
+  """
   capacity = model.capacity
-  params = variables["params"]
   t_near, t_far = interval
   finished = (lambda edges: finish_edges(model, edges)) if finish else (lambda edges: edges)
   keys = jax.random.split(key, len(model.proposal_fields) + 1)
@@ -183,25 +210,38 @@ def _proposal_samples(model, variables, rays, key, training, interval, finish):
                                   model.spacing_scale)
   else:
     edges = sampling.stratified_edges(keys[0], t_near, t_far, proposal_counts[0], training)
-
-  def points_of(edges):
-    centres = sampling.midpoints(edges)
-    return model.to_unit_cube(rays.origins[..., None, :] +
-                              centres[..., None] * rays.directions[..., None, :])
-
   proposals = []
   next_counts = list(proposal_counts[1:]) + [field_count]
   for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
-    density = field.apply({"params": params[f"proposal_{index}"]}, points_of(edges))
-    proposal_edges = finished(edges)
-    weights, _ = volume.compute_weights(density, proposal_edges)
-    proposals.append((proposal_edges, weights))
+    points = points_of(model, rays, edges)
+    if proposal_density is None:
+      density = field.apply({"params": params[f"proposal_{index}"]}, points)
+    else:
+      density = proposal_density(index, points, finished(edges))
+    coarse_edges = finished(edges)
+    weights, _ = volume.compute_weights(density, coarse_edges)
+    proposals.append((coarse_edges, weights))
     edges = sampling.sample_pdf(keys[index + 1], edges, weights, count, training)
+  return edges, proposals
+
+
+def points_of(model, rays: Rays, edges):
+  """Unit-cube points [R, N, 3] at the midpoints of edges [R, N + 1] (`NerfModel.to_unit_cube`)."""
+  centres = sampling.midpoints(edges)
+  return model.to_unit_cube(rays.origins[..., None, :] +
+                            centres[..., None] * rays.directions[..., None, :])
+
+
+def _proposal_samples(model, variables, rays, key, training, interval, finish):
+  params = variables["params"]
+  edges, proposals = proposal_edges(model, params, rays, key, training, interval, finish)
+  finished = finish_edges(model, edges) if finish else edges
   sample_shape = edges.shape[:-1] + (edges.shape[-1] - 1,)
   directions = jnp.broadcast_to(rays.directions[..., None, :], sample_shape + (3,))
   appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
-  density, rgb = model.field.apply({"params": params["field"]}, points_of(edges), directions,
-                                   appearance, variables.get("level_weights"))
+  density, rgb = model.field.apply({"params": params["field"]}, points_of(model, rays, edges),
+                                   directions, appearance, variables.get("level_weights"))
+  proposal_counts, field_count = model.capacity.sample_counts(training)
   samples = sum(proposal_counts) + field_count
-  return ((density, rgb, finished(edges)), jnp.ones(rays.shape, bool),
+  return ((density, rgb, finished), jnp.ones(rays.shape, bool),
           {"proposals": proposals, "samples_evaluated": jnp.int32(samples * rays.shape[0])})

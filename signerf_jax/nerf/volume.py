@@ -32,7 +32,12 @@ def compute_weights(densities, edges):
     transmittance_after: [...] light left after the last sample (1 - sum of weights).
   """
   edges = jnp.minimum(edges, MAX_DISTANCE)
-  deltas = jnp.maximum(edges[..., 1:] - edges[..., :-1], 0.0)
+  return interval_weights(densities, jnp.maximum(edges[..., 1:] - edges[..., :-1], 0.0))
+
+
+def interval_weights(densities, deltas):
+  """`compute_weights` given the intervals' lengths [..., N] (>= 0, finite) instead of their
+  edges: the intervals follow one another along the ray, with nothing between them."""
   optical_depth = jnp.minimum(densities * deltas, MAX_OPTICAL_DEPTH)
   alpha = -jnp.expm1(-optical_depth)
   accumulated = jnp.cumsum(optical_depth, axis=-1)
@@ -79,11 +84,19 @@ def volume_render(densities, rgbs, edges, cos_to_optical_axis, background=None):
   weights, _ = compute_weights(densities, edges)
   finite_edges = jnp.minimum(edges, MAX_DISTANCE)
   centres = 0.5 * (finite_edges[..., 1:] + finite_edges[..., :-1])
-  far = finite_edges[..., -1]
+  return {**summarise(weights, rgbs, centres, finite_edges[..., 0], finite_edges[..., -1],
+                      cos_to_optical_axis, background),
+          "weights": weights, "edges": finite_edges}
+
+
+def summarise(weights, rgbs, centres, first, far, cos_to_optical_axis, background=None):
+  """`volume_render`'s per-ray outputs from the samples' weights [..., N], colours [..., N, 3]
+  and centres [..., N] (ray distances, increasing along the ray), the first edge [...] and the
+  far edge [...] (finite): rgb, accumulation, distance, median_distance, depth, median_depth."""
   accumulation = jnp.sum(weights, axis=-1)
   empty = accumulation < EMPTY_ACCUMULATION
   expected = safe_math.safe_div(jnp.sum(weights * centres, axis=-1), accumulation)
-  distance = jnp.where(empty, far, jnp.clip(expected, finite_edges[..., 0], far))
+  distance = jnp.where(empty, far, jnp.clip(expected, first, far))
 
   cumulative = jnp.cumsum(jax.lax.stop_gradient(weights), axis=-1)
   half = 0.5 * jax.lax.stop_gradient(accumulation)[..., None]
@@ -97,8 +110,6 @@ def volume_render(densities, rgbs, edges, cos_to_optical_axis, background=None):
       "median_distance": median_distance,
       "depth": distance * cos_to_optical_axis,
       "median_depth": median_distance * cos_to_optical_axis,
-      "weights": weights,
-      "edges": finite_edges,
   }
 
 

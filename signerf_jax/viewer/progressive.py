@@ -26,8 +26,9 @@ HEIGHTS = (64, 128, 256)
 CHUNK_SIZE = 4096
 # Frames before the finest, what a moving camera sees, render this fraction of the radiance
 # field's samples (proposal sampler, `Capacity.render_sample_fraction`); the finest renders as
-# the model says. A third of the field's samples renders nearly twice the rays per second of
-# every sample for a modest loss of quality (docs/performance.md).
+# `render.render_chunks` does by default (front to back, `render.DEFAULT`: two thirds at
+# most). A third keeps a moving camera's frames of a real capture interactive on a 2-core CPU
+# (stitch's 128-px frame: 0.36 s, docs/results.md) for a modest loss of quality.
 MOVING_SAMPLE_FRACTION = 1 / 3
 
 
