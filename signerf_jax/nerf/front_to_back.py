@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax.camera import Rays
-from signerf_jax.nerf import sampling, volume
+from signerf_jax.nerf import volume
 from signerf_jax.nerf.fields import RadianceField
 
 
@@ -161,12 +161,6 @@ def front_to_back(evaluate, deltas, settings: RenderSettings, candidates=None, t
         values[0] * deltas[:, first:end], volume.MAX_OPTICAL_DEPTH), axis=-1)
     slices.append(values)
   return jax.tree.map(lambda *parts: jnp.concatenate(parts, axis=1), *slices)
-
-
-def deltas_of(edges):
-  """[..., N] interval lengths of finished edges [..., N + 1] (as `volume.compute_weights`)."""
-  edges = jnp.minimum(edges, sampling.MAX_DISTANCE)
-  return jnp.maximum(edges[..., 1:] - edges[..., :-1], 0.0)
 
 
 def flat_points(points):

@@ -213,12 +213,11 @@ def proposal_edges(model, params, rays: Rays, key, training: bool, interval, fin
   proposals = []
   next_counts = list(proposal_counts[1:]) + [field_count]
   for index, (field, count) in enumerate(zip(model.proposal_fields, next_counts)):
-    points = points_of(model, rays, edges)
+    points, coarse_edges = points_of(model, rays, edges), finished(edges)
     if proposal_density is None:
       density = field.apply({"params": params[f"proposal_{index}"]}, points)
     else:
-      density = proposal_density(index, points, finished(edges))
-    coarse_edges = finished(edges)
+      density = proposal_density(index, points, coarse_edges)
     weights, _ = volume.compute_weights(density, coarse_edges)
     proposals.append((coarse_edges, weights))
     edges = sampling.sample_pdf(keys[index + 1], edges, weights, count, training)

@@ -27,8 +27,8 @@ import numpy as np
 from signerf_jax.camera import Rays
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf import occupancy, ray_samples, sampling, volume
-from signerf_jax.nerf.front_to_back import (RenderSettings, deltas_of, flat_points,
-                                            front_to_back, gather, shade, weight_statistics)
+from signerf_jax.nerf.front_to_back import (RenderSettings, flat_points, front_to_back, gather,
+                                            shade, weight_statistics)
 
 # Occupancy sampler: a ray's list (`RenderSettings.list_samples`) takes whole blocks of this many
 # consecutive steps (`_occupied_blocks`).
@@ -40,7 +40,7 @@ def _proposal_density(model, params, settings: RenderSettings, grids):
   density grid (`render_state.proposal_grids`, or None) does not say the sample is empty."""
 
   def density(index, points, edges):
-    network, flat, deltas = model.proposal_fields[index], flat_points(points), deltas_of(edges)
+    network, flat, deltas = model.proposal_fields[index], flat_points(points), volume.interval_lengths(edges)
     variables = {"params": params[f"proposal_{index}"]}
 
     def evaluate(indices):
@@ -75,7 +75,7 @@ def _proposal_render(model, variables, rays: Rays, settings: RenderSettings, gri
   # reaches infinity only for the compositing.
   points = ray_samples.points_of(model, rays, edges)
   edges = ray_samples.finish_edges(model, edges)
-  weights, _, rgbs = shade(model, variables, rays, points, deltas_of(edges), settings)
+  weights, _, rgbs = shade(model, variables, rays, points, volume.interval_lengths(edges), settings)
   return _along_edges(weights, rgbs, edges)
 
 
@@ -152,7 +152,7 @@ def _occupancy_march(model, variables, rays: Rays, settings: RenderSettings, mar
   # These rays are visible after their list's steps: passes as long as the list, not shorter.
   settings = dataclasses.replace(settings, first_pass=max(settings.first_pass,
                                                           settings.list_samples))
-  weights, _, rgbs = shade(model, variables, rays, points, deltas_of(edges), settings,
+  weights, _, rgbs = shade(model, variables, rays, points, volume.interval_lengths(edges), settings,
                            candidates=mask, deferred=False)
   return _along_edges(weights, rgbs, edges)
 

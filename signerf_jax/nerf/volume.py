@@ -31,8 +31,14 @@ def compute_weights(densities, edges):
     weights: [..., N], each in [0, 1], summing to <= 1 per ray.
     transmittance_after: [...] light left after the last sample (1 - sum of weights).
   """
+  return interval_weights(densities, interval_lengths(edges))
+
+
+def interval_lengths(edges):
+  """[..., N] lengths (>= 0, finite) of the intervals between edges [..., N + 1] (sorted; the
+  last may be inf: distances are capped at MAX_DISTANCE)."""
   edges = jnp.minimum(edges, MAX_DISTANCE)
-  return interval_weights(densities, jnp.maximum(edges[..., 1:] - edges[..., :-1], 0.0))
+  return jnp.maximum(edges[..., 1:] - edges[..., :-1], 0.0)
 
 
 def interval_weights(densities, deltas):
