@@ -1,9 +1,11 @@
 """Shared test plumbing: the ../shared/data location, the `shared_data` marker, a compilation
 cache private to the session, XLA's optimisation level, glibc's allocator left as it is, a broken
-torchvision hidden from transformers, and experiment scripts imported as modules."""
+torchvision hidden from transformers, compiled programs released before they use up the
+process's memory maps, and experiment scripts imported as modules."""
 
 from __future__ import annotations
 
+import gc
 import importlib.util
 import os
 import shutil
@@ -86,6 +88,36 @@ def pytest_xdist_make_scheduler(config, log):
       return super()._split_scope(nodeid)
 
   return SharedFixtureScheduling(config, log)
+
+
+def _memory_map_count() -> int | None:
+  """How many memory mappings this process holds; None where the kernel does not say."""
+  try:
+    with open("/proc/self/maps", "rb") as maps:
+      return sum(1 for _ in maps)
+  except OSError:
+    return None
+
+
+def _memory_map_limit() -> int:
+  try:
+    return int(Path("/proc/sys/vm/max_map_count").read_text())
+  except (OSError, ValueError):
+    return 65530  # Linux's default.
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+  """Drops JAX's compiled programs after a module when they hold half the process's allowed
+  memory maps. Each program's machine code lives in a few maps of its own and JAX keeps every
+  program it compiled; a test worker runs hundreds of modules, and near the end of the suite it
+  reached the kernel's limit (vm.max_map_count), where LLVM aborts the next compilation."""
+  yield
+  count = _memory_map_count()
+  if count is not None and count > _memory_map_limit() // 2:
+    import jax  # pylint: disable=g-import-not-at-top  (after the environment above is set)
+    jax.clear_caches()
+    gc.collect()
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pycolmap
 
 from signerf_jax import files
+from signerf_jax.data.colmap_bindings import pycolmap
 from signerf_jax.data.structure_from_motion import world_from_camera_opengl
 
 # COLMAP's parameter order per camera model -> nerfstudio's keys. SIMPLE_RADIAL's one focal

@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import Callable, Literal, Sequence
 
 import numpy as np
-import pycolmap
 
 from signerf_jax.data import image_pairs
+from signerf_jax.data.colmap_bindings import pycolmap
 
 CameraModel = Literal["OPENCV", "SIMPLE_RADIAL"]
 Matching = Literal["auto", "exhaustive", "sequential"]

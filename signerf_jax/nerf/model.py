@@ -138,6 +138,17 @@ class NerfModel:
     centre, half_extent = (low + high) / 2, (high - low) / 2
     return sampling.contract((points - centre) / half_extent) / 4.0 + 0.5
 
+  def from_unit_cube(self, coordinates):
+    """Field coordinates [..., 3] -> scene points [..., 3]: the inverse of `to_unit_cube`
+    (inside the grid; the far boundary of a contracted grid is ~1e6 half-extents away)."""
+    if self.capacity.perspective_warp:
+      return self.scene.perspective.inverse(coordinates)
+    low, high = self.bounds
+    if not self.capacity.contract:
+      return low + coordinates * (high - low)
+    centre, half_extent = (low + high) / 2, (high - low) / 2
+    return centre + sampling.uncontract((coordinates - 0.5) * 4.0) * half_extent
+
   @property
   def spacing_scale(self) -> float:
     """Distance at which mip-NeRF 360 spacing switches from linear to inverse distance (the

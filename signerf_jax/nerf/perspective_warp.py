@@ -71,3 +71,9 @@ class PerspectiveWarp:
     rotation, centre, low, high = (np.asarray(value, np.float32) for value in
                                    (self.rotation, self.centre, self.low, self.high))
     return (sampling.perspective((points - centre) @ rotation.T) - low) / (high - low)
+
+  def inverse(self, coordinates):
+    """Field coordinates [..., 3] (warped, [0, 1] inside the range) -> [..., 3] scene points."""
+    rotation, centre, low, high = (np.asarray(value, np.float32) for value in
+                                   (self.rotation, self.centre, self.low, self.high))
+    return sampling.unperspective(low + coordinates * (high - low)) @ rotation + centre

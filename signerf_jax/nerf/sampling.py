@@ -169,6 +169,16 @@ def contract(points):
   return jnp.where(norm <= 1.0, points, points * scale)
 
 
+def uncontract(contracted):
+  """The inverse of `contract`: [..., 3] in (-2, 2)^3 -> [..., 3] points (the L-inf norm n > 1
+  came from 1 / (2 - n); the boundary, infinitely far, maps to ~1e6).
+  """
+  norm = jnp.max(jnp.abs(contracted), axis=-1, keepdims=True)
+  far_norm = 1.0 / jnp.maximum(2.0 - norm, 1e-6)
+  return jnp.where(norm <= 1.0, contracted,
+                   contracted * safe_math.safe_div(far_norm, jnp.maximum(norm, 1.0)))
+
+
 def perspective(offsets):
   """NDC's warp of forward-facing scenes: (x / depth, y / depth, 1 / depth) with depth along -z.
   A grid over these coordinates spends the same cells on what a pixel covers at every depth, as
@@ -181,6 +191,13 @@ def perspective(offsets):
   """
   depth = jnp.maximum(-offsets[..., 2:], 1e-6)
   return jnp.concatenate([offsets[..., :2] / depth, 1.0 / depth], axis=-1)
+
+
+def unperspective(warped):
+  """The inverse of `perspective`: [..., 3] warped coordinates (third > 0) -> [..., 3] points
+  in the camera's frame."""
+  depth = 1.0 / jnp.maximum(warped[..., 2:], 1e-12)
+  return jnp.concatenate([warped[..., :2] * depth, -depth], axis=-1)
 
 
 def midpoints(edges):

@@ -6,6 +6,7 @@ import pytest
 
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import capacity, scene_info
+from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.encoding import grid_layout
 from signerf_jax.nerf.perspective_warp import PerspectiveWarp
 
@@ -54,6 +55,19 @@ def test_real_scenes_use_proposals_and_contract_only_when_unbounded(kind, contra
   assert derived.background == "last_sample" and not derived.appearance_embedding
   if contract:  # the inner box takes half of the contracted grid
     assert derived.finest_resolution >= 2 * capacity.derive_capacity(LEGO_100).finest_resolution - 8
+
+
+@pytest.mark.parametrize("kind", ["bounded", "forward_facing", "unbounded"])
+def test_field_coordinates_map_back_to_the_scene_points(kind):
+  scene = {"bounded": LEGO_100, "forward_facing": FORWARD_FACING,
+           "unbounded": dataclasses.replace(LEGO_100, kind=kind, background_color=None)}[kind]
+  model = nerf_model.NerfModel(scene, capacity.derive_capacity(scene))
+  # Inside the box, far outside it (contracted) and in front of the forward-facing cameras.
+  points = np.array([[0.2, -0.5, -1.5], [0.9, 0.3, -2.0], [-0.1, 0.1, -2.5]], np.float32)
+  if kind == "unbounded":
+    points = np.concatenate([points, [[30.0, -4.0, 2.0]]]).astype(np.float32)
+  coordinates = model.to_unit_cube(points)
+  np.testing.assert_allclose(model.from_unit_cube(coordinates), points, rtol=1e-4, atol=1e-5)
 
 
 def test_overrides_pin_fields_and_bad_footprint_is_an_input_error():
@@ -230,6 +244,7 @@ def test_perspective_warp_spans_the_cameras_field_of_view_in_any_orientation(yaw
   coordinates = np.asarray(warp(seen @ rotation.T + position))
   assert np.all((coordinates >= 0) & (coordinates <= 1)), coordinates
   np.testing.assert_allclose(coordinates[:2, :2].mean(), 0.5, atol=0.1)
+  np.testing.assert_allclose(warp.inverse(coordinates), seen @ rotation.T + position, atol=1e-4)
   assert PerspectiveWarp.from_json(json.loads(json.dumps(
       dataclasses.asdict(warp)))) == warp
 

@@ -150,3 +150,13 @@ def test_perspective_divides_by_depth_along_minus_z():
 def test_perspective_has_finite_gradients(offset):
   jacobian = jax.jacfwd(sampling.perspective)(jnp.asarray(offset, jnp.float32))
   assert np.all(np.isfinite(jacobian))
+
+
+def test_uncontract_and_unperspective_invert_their_warps():
+  points = np.array([[0.3, -0.9, 0.2], [3.0, 0.5, -1.0], [-40.0, 2.0, 7.0], [0.0, 0.0, -1e3]],
+                    np.float32)
+  np.testing.assert_allclose(sampling.uncontract(sampling.contract(points)), points, rtol=1e-4)
+  in_front = points - np.array([0.0, 0.0, 50.0], np.float32)  # Every point ahead of the camera.
+  np.testing.assert_allclose(sampling.unperspective(sampling.perspective(in_front)), in_front,
+                             rtol=1e-5)
+  assert np.all(np.isfinite(sampling.uncontract(np.array([[2.0, 0.0, 0.0]], np.float32))))
