@@ -178,3 +178,15 @@ def condition_views(model: nerf_model.NerfModel, variables, cameras: camera_lib.
   conditioned = _derive(chosen.take(padded), {name: array[padded] for name, array
                                               in renders.items()}, edit_selection, config)
   return conditioned.take(np.arange(len(indices)))
+
+
+def condition_in_chunks(model: nerf_model.NerfModel, variables, cameras: camera_lib.Cameras,
+                        edit_selection: EditSelection, config: SelectionConfig,
+                        chunk_size: int) -> Conditioning:
+  """`condition` of every camera (full frames), `chunk_size` at a time (`condition_views`): its
+  programs are compiled for `chunk_size` cameras whatever their number, so the reference tiles,
+  the training views and the held-out views of an edit share them where their sizes agree."""
+  count = cameras.num_cameras
+  return Conditioning.stack_chunks([
+      condition_views(model, variables, cameras, chunk, edit_selection, config, chunk_size)
+      for chunk in np.array_split(np.arange(count), -(-count // chunk_size))])

@@ -60,6 +60,8 @@ CORNER_QUALITY = 1e-3
 CORNER_MIN_DISTANCE_PIXELS = 2
 FLOW_WINDOW_PIXELS = 21
 FLOW_PYRAMID_LEVELS = 4
+# Keypoints are undistorted in batches of a power of two, at least this many.
+MIN_UNDISTORT_BATCH = 256
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,6 +275,18 @@ def fundamental_inliers(first_points: np.ndarray, second_points: np.ndarray,
   return 0 if matrix is None or inliers is None else int(np.count_nonzero(inliers))
 
 
+def _undistort_padded(x: np.ndarray, y: np.ndarray, distortion: np.ndarray,
+                      fisheye: bool) -> tuple[np.ndarray, np.ndarray]:
+  """`lens.undistort` of [K] normalised coordinates, padded to a power of two so that the
+  varying keypoint counts of an evaluation's pairs share a few compiled programs instead of
+  one each."""
+  count = len(x)
+  padding = max(MIN_UNDISTORT_BATCH, 1 << max(count - 1, 0).bit_length()) - count
+  x, y = (np.pad(value, (0, padding)) for value in (x, y))
+  x, y = lens.undistort(x, y, np.pad(distortion, ((0, padding), (0, 0))), fisheye)
+  return np.asarray(x, np.float64)[:count], np.asarray(y, np.float64)[:count]
+
+
 def ideal_pixels(cameras: camera_lib.Cameras, keypoints: list[np.ndarray]) -> list[np.ndarray]:
   """Per view, [K, 3] homogeneous undistorted pixel positions (this project's convention, pixel
   centres at +0.5) of OpenCV keypoints [K, 2]; all views are undistorted in one call (a
@@ -282,9 +296,11 @@ def ideal_pixels(cameras: camera_lib.Cameras, keypoints: list[np.ndarray]) -> li
   points = np.concatenate(keypoints).reshape(-1, 2) + 0.5
   fx, fy = (np.asarray(value, np.float64)[view] for value in (cameras.fx, cameras.fy))
   cx, cy = (np.asarray(value, np.float64)[view] for value in (cameras.cx, cameras.cy))
-  x, y = lens.undistort((points[:, 0] - cx) / fx, (points[:, 1] - cy) / fy,
-                              np.asarray(cameras.distortion)[view], cameras.fisheye)
-  ideal = np.stack([np.asarray(x) * fx + cx, np.asarray(y) * fy + cy, np.ones(len(view))], -1)
+  x, y = (points[:, 0] - cx) / fx, (points[:, 1] - cy) / fy
+  distortion = np.asarray(cameras.distortion)[view]
+  if np.any(distortion):
+    x, y = _undistort_padded(x, y, distortion, cameras.fisheye)
+  ideal = np.stack([x * fx + cx, y * fy + cy, np.ones(len(view))], -1)
   return np.split(ideal, np.cumsum([len(points) for points in keypoints])[:-1])
 
 

@@ -186,6 +186,31 @@ def test_the_preview_shows_each_candidate_as_soon_as_it_is_made(finished_edit, t
     assert (directory / "preview" / "candidates" / f"{seed}.png").is_file()
 
 
+def test_an_edit_that_runs_the_update_makes_the_preview_with_the_updates_sampler(
+    finished_edit, tmp_path):
+  """When the update follows in the same process, the preview's candidates go through the
+  update's batches and compiled sampler: one sampler compiled for both stages (tiles of a size
+  nothing in this process compiled for before)."""
+  directory, _, chosen = finished_edit
+  directory = Path(shutil.copytree(directory, tmp_path / "edit"))
+  compiled = []
+
+  def record(event, duration, **kwargs):
+    del duration
+    if event.endswith("backend_compile_duration"):
+      compiled.append(kwargs.get("fun_name"))
+
+  jax.monitoring.register_event_duration_secs_listener(record)
+  try:
+    stages.run_edit(directory, settings_of(chosen + ["SheetConfig.tile_size = 24"]),
+                    until="update", progress=False, log=lambda line: None)
+  finally:
+    jax.monitoring.unregister_event_duration_listener(record)
+  assert compiled.count("jit(sample)") == 1, compiled
+  for seed in (0, 1):
+    assert (directory / "preview" / "candidates" / f"{seed}.png").is_file()
+
+
 def test_an_unknown_stage_is_an_error_naming_the_stages(finished_edit):
   directory, _, chosen = finished_edit
   with pytest.raises(InputError, match="unknown stage 'sheets'.*update"):

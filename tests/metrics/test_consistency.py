@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from signerf_jax import camera
+from signerf_jax import camera, lens
 from signerf_jax.data import synthetic, synthetic_render
 from signerf_jax.errors import InputError
 from signerf_jax.metrics import consistency
@@ -206,3 +206,20 @@ def test_neighbours_by_distance_and_angle():
           [0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
   with pytest.raises(InputError, match="ConsistencySettings.neighbours"):
     consistency.ConsistencySettings(neighbours="random")
+
+
+def test_ideal_pixels_of_varying_keypoint_counts_share_compiled_programs():
+  """Pairs with different keypoint counts (an evaluation undistorts every pair's) reuse the
+  undistortion compiled for the first count within the same power of two."""
+  cameras = camera.Cameras.create(np.asarray(camera.look_at(np.array([[2.0, 0.3, 0.8]] * 2),
+                                                            np.zeros(3))),
+                                  fx=90.0, width=80, height=60, distortion=(-0.1, 0.02, 0.0, 0.0))
+  keypoints = lambda count: [np.random.default_rng(count).uniform(0, 60, (count, 2))] * 2
+  first = consistency.ideal_pixels(cameras, keypoints(300))
+  compiled = lens.undistort._cache_size()  # pylint: disable=protected-access
+  for count in (301, 350, 511):
+    ideal = consistency.ideal_pixels(cameras, keypoints(count))
+    assert [len(points) for points in ideal] == [count, count]
+  assert lens.undistort._cache_size() == compiled  # pylint: disable=protected-access
+  assert np.isfinite(first[0]).all() and not np.allclose(first[0][:, :2],
+                                                         keypoints(300)[0] + 0.5)

@@ -40,12 +40,15 @@ class EditContext:
     progress: show progress bars.
     keys: each stage's key (`runner.stage_keys`), for stages whose outputs record what made
       them (the preview's candidates).
+    stages_to_run: the stages this command runs (not those whose results it reuses), so that
+      a stage can compile a program a later one reuses (the preview's sampler, the update's).
   """
 
   directory: EditDirectory
   settings: EditSettings
   progress: bool = True
   keys: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+  stages_to_run: tuple[str, ...] = ()
   # Trained NeRFs by iteration (0: the original), loaded once; dropped when a stage retrains.
   _nerfs: dict[int, evaluate.TrainedRun] = dataclasses.field(default_factory=dict, repr=False,
                                                              compare=False)

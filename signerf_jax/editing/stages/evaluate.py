@@ -48,13 +48,9 @@ def evaluation_settings(context: EditContext) -> dict[str, Any]:
 
 def _held_out_conditioning(context: EditContext, nerf) -> conditioning_lib.Conditioning:
   """The original NeRF's renders, selections and masks at the held-out cameras."""
-  cameras = context.eval_cameras
-  chunks = np.array_split(np.arange(cameras.num_cameras),
-                          -(-cameras.num_cameras // VIEWS_PER_CHUNK))
-  return conditioning_lib.Conditioning.stack_chunks([
-      conditioning_lib.condition_views(nerf.model, nerf.variables, cameras, chunk,
-                                       context.selection, context.settings.selection,
-                                       VIEWS_PER_CHUNK) for chunk in chunks])
+  return conditioning_lib.condition_in_chunks(nerf.model, nerf.variables, context.eval_cameras,
+                                              context.selection, context.settings.selection,
+                                              VIEWS_PER_CHUNK)
 
 
 def _adherence(context: EditContext, views: EditedViews, before, after) -> dict[str, Any]:

@@ -16,6 +16,7 @@ from signerf_jax.editing import figures
 from signerf_jax.editing.config import as_json
 from signerf_jax.editing.project import load_arrays, save_arrays
 from signerf_jax.editing.stages.context import EditContext
+from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
 from signerf_jax.errors import InputError
 from signerf_jax.geometry import reference_cameras
 
@@ -89,8 +90,10 @@ def render_reference(context: EditContext, iteration: int = 1) -> str:
     cameras = cameras_from_json(files.read_json(context.directory.path("reference",
                                                                        "cameras.json")))
     report, nerf = None, context.nerf(iteration - 1)
-  arrays = conditioning_lib.condition(nerf.model, nerf.variables, cameras, context.selection,
-                                      context.settings.selection).arrays()
+  # In the training views' chunks: where tiles and views have one size, they share programs.
+  arrays = conditioning_lib.condition_in_chunks(nerf.model, nerf.variables, cameras,
+                                                context.selection, context.settings.selection,
+                                                VIEWS_PER_CHUNK).arrays()
   if iteration > 1:
     first = load_arrays(context.directory.path("reference", "inputs.npz"), GEOMETRY_ARRAYS)
     arrays.update({name: first[name] for name in GEOMETRY_ARRAYS})

@@ -164,7 +164,10 @@ def _start(directory, settings: EditSettings, until: str, redo: tuple[str, ...],
       for folder in stage.outputs(context):
         ownership.remove_written(folder)
   context.directory.forget(redone)
-  return context, stages[:[stage.name for stage in stages].index(until) + 1]
+  stages = stages[:[stage.name for stage in stages].index(until) + 1]
+  to_run = tuple(stage.name for stage in stages
+                 if not context.directory.is_finished(stage.name, context.keys[stage.name]))
+  return dataclasses.replace(context, stages_to_run=to_run), stages
 
 
 def _check(settings: EditSettings, until: str, redo: tuple[str, ...],

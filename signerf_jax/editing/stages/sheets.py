@@ -99,11 +99,14 @@ def preview(context: EditContext) -> str:
     draw()
     bar.update(len(made))
 
-  # The user waits for the first candidate: they are made one at a time (preview.png shows each
-  # as it comes) by a program compiled for a quick start rather than a quick run (less XLA
-  # compilation for a slower sheet brings the first candidate sooner; docs/performance.md).
-  generator = dataclasses.replace(context.generator(1), views_per_device=1,
-                                  winograd_convolutions=False)
+  # When the update runs next in this process, the candidates are made in its batches by its
+  # sampler, compiled once for both. Otherwise (`signerf preview`) the user waits for the first
+  # candidate: they are made one at a time (preview.png shows each as it comes) by a program
+  # compiled for a quick start rather than a quick run (less XLA compilation for a slower
+  # sheet brings the first candidate sooner; docs/performance.md).
+  generator = context.generator(1)
+  if "update" not in context.stages_to_run:
+    generator = dataclasses.replace(generator, views_per_device=1, winograd_convolutions=False)
   with tqdm.tqdm(total=len(recipes) - len(shown), unit="sheet", desc="preview",
                  disable=not context.progress, dynamic_ncols=True) as bar:
     generation.generate_sheets(generator, inputs, recipes, known, on_batch=save)
