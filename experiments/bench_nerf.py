@@ -8,7 +8,8 @@ Scenes (in ../shared/data; `SIGNERF_SHARED_DATA` points elsewhere):
                           test views (transforms_test.json);
   fern                    LLFF fern images_8 (504x378), every 8th view held out;
   lego                    Blender lego at 100^2, its 25 test views;
-  lego_12                 the same with 12 training views (0, 8, ..., 88 of the 100).
+  lego_12                 the same with 12 training views (0, 8, ..., 88 of the 100);
+  stitch_13               stitch at 200^2 with 13 training views (0, 7, ..., 84 of its 88).
 Each trains once with the schedule spanning its longest time and is evaluated on its held-out
 views at every time in `seconds`, and on 16 training views (the generalisation gap) at the last
 (training time excludes evaluation; it includes compilation). Writes bench_nerf.{json,png,gin}
@@ -57,6 +58,7 @@ SCENES = {
     "fern": Scene(SHARED_DATA / "llff" / "fern", 8),
     "lego": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8),
     "lego_12": Scene(SHARED_DATA / "nerf_synthetic" / "lego", 8, tuple(range(0, 96, 8))),
+    "stitch_13": Scene(SHARED_DATA / "stitch", 4, tuple(range(0, 88, 7))),
 }
 FIGURE_VIEWS = 3
 
