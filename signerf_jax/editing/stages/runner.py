@@ -216,7 +216,7 @@ def _run_stages(directory, settings: EditSettings, until: str, redo: tuple[str, 
   for number, stage in enumerate(stages, 1):
     key = context.keys[stage.name]
     label = f"[{number}/{len(stages)}] {stage.name}"
-    if context.directory.is_finished(stage.name, key):
+    if stage.name not in context.stages_to_run:
       summary = context.directory.record(stage.name).summary
       log(f"{label}: reusing its earlier result - {summary}")
       continue
