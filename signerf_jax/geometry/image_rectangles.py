@@ -84,7 +84,12 @@ def points_rectangles(cameras: camera_lib.Cameras, points, growth: int) -> np.nd
     [N, 4] int64 rectangles [x_start, y_start, x_stop, y_stop]; [0, 0, 0, 0] where no pixel-centre
     ray meets the hull, [0, 0, W, H] where some point is not in front of the camera.
   """
-  bounds = np.asarray(_hull_bounds(cameras, jnp.asarray(points, jnp.float32)), np.int64)
+  # Padded to a power of two cameras (repeating the last), so the stages' sets of cameras share
+  # a few programs instead of compiling one per count.
+  count = cameras.num_cameras
+  padded = np.minimum(np.arange(1 << max(count - 1, 0).bit_length()), count - 1)
+  bounds = np.asarray(_hull_bounds(cameras.take(padded), jnp.asarray(points, jnp.float32)),
+                      np.int64)[:count]
   empty = bounds[:, 2] <= bounds[:, 0]
   grown = bounds + np.array([-growth, -growth, growth, growth], np.int64)
   limits = np.array([cameras.width, cameras.height] * 2, np.int64)

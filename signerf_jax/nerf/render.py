@@ -80,8 +80,18 @@ def _occupied_march(model: nerf_model.NerfModel, variables):
   return render_state.occupied_march(model, variables)
 
 
-# Jitted so that repeated calls reuse one compilation (eagerly, undistortion's loop recompiles).
-image_rays = jax.jit(camera.image_rays)
+@jax.jit
+def _one_camera_rays(one_camera: camera.Cameras, camera_index, subpixel) -> camera.Rays:
+  rays = camera.image_rays(one_camera, 0, subpixel)
+  return rays.replace(camera_indices=jnp.full(rays.shape, camera_index, jnp.int32))
+
+
+def image_rays(cameras: camera.Cameras, camera_index: int, subpixel=(0.5, 0.5)) -> camera.Rays:
+  """`camera.image_rays`, compiled (eagerly, undistortion's loop would recompile at every call)
+  once per image size: the camera is taken out of `cameras` on the host first, so that sets
+  of cameras of other sizes (every stage's) share one program."""
+  one_camera = jax.tree.map(lambda array: np.asarray(array)[[camera_index]], cameras)
+  return _one_camera_rays(one_camera, np.int32(camera_index), np.asarray(subpixel, np.float32))
 
 
 def physical_memory() -> int | None:

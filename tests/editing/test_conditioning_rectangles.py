@@ -99,6 +99,15 @@ def test_a_rectangle_is_the_hand_computed_projection_grown_and_clipped():
   # Moved 10, the box is out of view; turned around or inside it, it is behind the camera.
   np.testing.assert_array_equal(rectangles, [[12, 10, 28, 26], [0, 10, 11, 26], [0, 0, 0, 0],
                                              [0, 0, 40, 40], [0, 0, 40, 40]])
+  compiled = []
+  record = lambda event, duration, **kwargs: compiled.append(event.endswith("compile_duration"))
+  jax.monitoring.register_event_duration_secs_listener(record)
+  try:  # Sets of 5 to 8 cameras share one program (padded to 8).
+    fewer = image_rectangles.points_rectangles(cameras.take([0, 1, 2, 3, 4, 0]), box.corners, 3)
+  finally:
+    jax.monitoring.unregister_event_duration_listener(record)
+  assert not any(compiled)
+  np.testing.assert_array_equal(fewer, rectangles[[0, 1, 2, 3, 4, 0]])
   pixels = image_rectangles.rectangle_pixels(rectangles, 40, 40)
   assert pixels[0, 10, 12] and not pixels[0, 9, 12] and not pixels[0, 10, 28]
   assert pixels.reshape(5, -1).sum(1).tolist() == [16 * 16, 11 * 16, 0, 1600, 1600]

@@ -275,3 +275,15 @@ def test_the_commands_refuse_a_huge_chunk_size_before_loading_anything(command, 
                                    "memory"), process.stderr
   assert "this machine's" in process.stderr and "Traceback" not in process.stderr
   assert time.monotonic() - started < 60
+
+
+def test_image_rays_compile_once_per_image_size_whatever_the_number_of_cameras(sphere):
+  cameras = sphere.cameras
+  first = render.image_rays(cameras.take([0, 1, 2]), 2, (0.25, 0.75))
+  expected = camera.image_rays(cameras, 2, (0.25, 0.75))
+  for ours, theirs in zip(jax.tree.leaves(first), jax.tree.leaves(expected)):
+    np.testing.assert_allclose(ours, theirs, atol=3e-7)  # float rounding of the gathers
+  with count_compilations() as compiled:
+    rays = render.image_rays(cameras, 9, np.array([0.5, 0.5], np.float32))
+  assert not compiled
+  np.testing.assert_array_equal(rays.camera_indices, 9)
