@@ -378,6 +378,19 @@ def as_json(config: Any) -> dict[str, Any]:
           for field in dataclasses.fields(config)}
 
 
+# TrainConfig fields that came after edits were first keyed (keypoint depth): at
+# their defaults they stay out of a training's key, so earlier edits' NeRFs stay current.
+LATER_TRAINING_FIELDS = ("keypoint_depth_weight", "keypoint_rays")
+
+
+def training_key(config: TrainConfig) -> dict[str, Any]:
+  """A NeRF training's settings for its stage key (`as_json` less `LATER_TRAINING_FIELDS` at
+  their defaults)."""
+  default = TrainConfig()
+  return {name: value for name, value in as_json(config).items()
+          if not (name in LATER_TRAINING_FIELDS and value == getattr(default, name))}
+
+
 def _jsonable(value):
   if isinstance(value, tuple):
     return [_jsonable(item) for item in value]

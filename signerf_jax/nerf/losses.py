@@ -1,5 +1,6 @@
 """Training losses and regularisers: weighted colour error, mip-NeRF 360's distortion and
-proposal (interlevel) losses, and the near-camera gradient scaling of "Floaters No More"."""
+proposal (interlevel) losses, the depth error at known depths (`disparity_error`), and the
+near-camera gradient scaling of "Floaters No More"."""
 
 from __future__ import annotations
 
@@ -51,6 +52,29 @@ def opacity_entropy(weights, ray_weights):
   opacity = jnp.clip(jnp.sum(weights, axis=-1), 1e-4, 1.0 - 1e-4)
   entropy = -(opacity * jnp.log(opacity) + (1.0 - opacity) * jnp.log1p(-opacity))
   return jnp.sum(ray_weights * entropy) / jnp.maximum(jnp.sum(ray_weights), 1e-8)
+
+
+def disparity_error(edges, weights, distances, distance_unit: float, ray_weights):
+  """The mean over rays of E_w[(d - d*)^2]: the squared error of each interval's disparity
+  d = distance_unit / m (m its midpoint; 0 for an infinite interval) against the ray's known
+  disparity d* = distance_unit / distance, weighted by the rendering weights, the transparency
+  left at disparity 0. Unlike the error of the expected disparity, it penalises weight anywhere
+  but at the known depth, so fog in front and behind cannot average out to the right value; in
+  disparity, an unbounded background's far points weigh little.
+
+  Args:
+    edges: [R, N + 1] sorted interval edges (distances along unit-length rays, scene units);
+      weights: [R, N] compositing weights.
+    distances: [R] known distances along the rays (scene units).
+    ray_weights: [R] per-ray loss weights.
+  """
+  midpoints = 0.5 * (edges[..., 1:] + edges[..., :-1])
+  disparity = jnp.where(jnp.isfinite(midpoints),
+                        distance_unit / jnp.maximum(midpoints, 1e-6 * distance_unit), 0.0)
+  target = distance_unit / jnp.maximum(distances, 1e-6 * distance_unit)
+  transparent = jnp.maximum(1.0 - jnp.sum(weights, axis=-1), 0.0)
+  error = jnp.sum(weights * (disparity - target[:, None])**2, axis=-1) + transparent * target**2
+  return jnp.sum(ray_weights * error) / jnp.maximum(jnp.sum(ray_weights), 1e-8)
 
 
 def _searchsorted(sorted_edges, queries):

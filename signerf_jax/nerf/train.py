@@ -29,7 +29,7 @@ from jax.sharding import Mesh
 
 from signerf_jax import parallel, validation
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import losses, training_data
+from signerf_jax.nerf import keypoint_depth, losses, training_data
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.encoding import level_weights_at
 from signerf_jax.nerf.training_data import TrainingData
@@ -58,6 +58,12 @@ class TrainConfig(validation.CheckedFields):
     opacity_entropy_weight: weight of a prior pushing each ray's opacity towards 0 or 1
       (`losses.opacity_entropy`; for a model with an edit region, the opacity of the trained
       field inside the region): against the haze a field fitted to views that disagree becomes.
+    keypoint_depth_weight: weight of the depth error at triangulated keypoints of the
+      training views (`keypoint_depth`, `losses.disparity_error`; models without an edit
+      region): depth the photos fix where the photometric loss alone does not find it. None:
+      the capture chooses (`training_run.with_capture_choices`): SPARSE_KEYPOINT_DEPTH_WEIGHT
+      for a sparse capture of a scene with a background, 0 otherwise.
+    keypoint_rays: keypoint rays each step.
     checkpoint_every_steps, checkpoint_every_seconds: checkpoint when either is reached.
     seed: PRNG seed of the run.
   """
@@ -74,9 +80,16 @@ class TrainConfig(validation.CheckedFields):
   interlevel_loss_weight: NonNegativeFloat = 1.0
   distortion_loss_weight: NonNegativeFloat = 0.002
   opacity_entropy_weight: NonNegativeFloat = 0.0
+  keypoint_depth_weight: NonNegativeFloat | None = None
+  keypoint_rays: PositiveInt = 256
   checkpoint_every_steps: PositiveInt = 1000
   checkpoint_every_seconds: PositiveFloat = 120.0
   seed: NonNegativeInt = 0
+
+
+# The keypoint depth weight of sparse captures (`TrainConfig.keypoint_depth_weight`): stitch with
+# 13 views gained ~3 dB held-out with it (docs/performance.md).
+SPARSE_KEYPOINT_DEPTH_WEIGHT = 1.0
 
 
 @struct.dataclass
@@ -200,10 +213,15 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     the new state and scalar statistics: loss, psnr (of the batch), complete_fraction (rays
     that fit the sample budget), samples (network evaluations), learning_rate.
   """
-  ray_key, render_key, background_key = jax.random.split(
-      jax.random.fold_in(state.key, state.step), 3)
+  ray_key, render_key, background_key, keypoint_key = jax.random.split(
+      jax.random.fold_in(state.key, state.step), 4)
   rays, target, pixel_weight, background, surroundings, rays_per_pixel = training_data.step_batch(
       model, data, ray_key, background_key)
+  seen = rays.shape[0]
+  keypoint_distances = None
+  if config.keypoint_depth_weight and data.keypoints is not None and surroundings is None:
+    rays, background, keypoint_distances = _with_keypoint_rays(model, config, data, keypoint_key,
+                                                               rays, background)
   if mesh is not None:
     rays, target, pixel_weight, background, surroundings = jax.lax.with_sharding_constraint(
         (rays, target, pixel_weight, background, surroundings), parallel.batch_sharded(mesh))
@@ -215,6 +233,10 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     outputs, aux = nerf_model.render_rays(model, {**state.variables, "params": params}, rays,
                                           render_key, training=True, background=background,
                                           surroundings=surroundings)
+    keypoint_depth_error = None
+    if keypoint_distances is not None:
+      outputs, aux, keypoint_depth_error = _split_keypoint_rays(model, seen, keypoint_distances,
+                                                                outputs, aux)
     ray_weights = jnp.repeat(pixel_weight, rays_per_pixel) * outputs["ray_complete"]
     pixel_rgb = outputs["rgb"].reshape(-1, rays_per_pixel, 3).mean(axis=1)
     pixel_complete = outputs["ray_complete"].reshape(-1, rays_per_pixel).all(axis=1)
@@ -227,6 +249,9 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     statistics = {"mse": mse, "samples": aux["samples_evaluated"],
                   "complete_fraction": jnp.mean(outputs["ray_complete"])}
     loss = add_opacity_entropy(config, loss, aux["weights"], ray_weights, statistics)
+    if keypoint_depth_error is not None:
+      statistics["keypoint_depth"] = keypoint_depth_error
+      loss = loss + config.keypoint_depth_weight * keypoint_depth_error
     statistics["loss"] = loss
     return loss, statistics
 
@@ -235,6 +260,33 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
   statistics["learning_rate"] = last_learning_rate(optimizer_state)
   statistics["psnr"] = -10.0 * jnp.log10(jnp.maximum(statistics.pop("mse"), 1e-10))
   return TrainState(state.step + 1, variables, optimizer_state, state.key), statistics
+
+
+def _with_keypoint_rays(model: nerf_model.NerfModel, config: TrainConfig, data: TrainingData,
+                        key, rays, background):
+  """The batch's rays [R] followed by `config.keypoint_rays` rays through keypoints
+  (`keypoint_depth.sample_rays`), their backgrounds (None, or [R, 3] followed by the model's
+  constant background) and the keypoints' distances [K]. The keypoint rays have no colour
+  target, only their depth."""
+  keypoint_rays, distances = keypoint_depth.sample_rays(key, data.keypoints, data.cameras,
+                                                        config.keypoint_rays)
+  rays = jax.tree.map(lambda *parts: jnp.concatenate(parts), rays, keypoint_rays)
+  if background is not None:
+    background = jnp.concatenate([background, jnp.broadcast_to(
+        jnp.asarray(model.background, background.dtype), (config.keypoint_rays, 3))])
+  return rays, background, distances
+
+
+def _split_keypoint_rays(model: nerf_model.NerfModel, seen: int, distances, outputs, aux):
+  """`render_rays`' outputs and aux of the batch's first `seen` rays, and the keypoint rays'
+  (the rest) `losses.disparity_error` against their known `distances` [K]."""
+  keypoints = slice(seen, None)
+  error = losses.disparity_error(
+      aux["edges"][keypoints], aux["weights"][keypoints], distances,
+      model.scene.camera_distance, outputs["ray_complete"][keypoints].astype(jnp.float32))
+  per_ray = {name: value for name, value in aux.items() if name != "samples_evaluated"}
+  outputs, per_ray = jax.tree.map(lambda array: array[:seen], (outputs, per_ray))
+  return outputs, {**aux, **per_ray}, error
 
 
 def add_opacity_entropy(config: TrainConfig, loss, weights, ray_weights, statistics):

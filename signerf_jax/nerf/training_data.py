@@ -21,6 +21,7 @@ from flax import struct
 from signerf_jax import camera
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
+from signerf_jax.nerf import keypoint_depth
 from signerf_jax.nerf import model as nerf_model
 
 
@@ -48,6 +49,7 @@ class TrainingData:
     pixel_weights: [N, H, W] float32 per-pixel loss weights (1 = normal, 0 = ignore).
     alphas: None or [N, H, W] float32 opacity of RGBA images (`Dataset.alphas`).
     region: for a model with an edit region, the only pixels a step samples (`RegionRays`).
+    keypoints: depths of triangulated keypoints (`keypoint_depth.KeypointDepths`), or None.
   """
 
   images: jax.Array
@@ -55,6 +57,7 @@ class TrainingData:
   pixel_weights: jax.Array
   alphas: jax.Array | None = None
   region: RegionRays | None = None
+  keypoints: keypoint_depth.KeypointDepths | None = None
 
   @classmethod
   def from_dataset(cls, dataset: Dataset, pixel_weights=None) -> "TrainingData":

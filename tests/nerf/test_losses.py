@@ -103,3 +103,16 @@ def test_opacity_entropy_gradients_are_finite_and_push_away_from_half():
   assert gradient[3, 0] < 0 < gradient[2, 0]  # descent takes 0.3 towards 0, 0.7 towards 1
   ignored = jax.grad(lambda w: losses.opacity_entropy(w, jnp.array([1.0, 0, 0, 0, 0])))(weights)
   np.testing.assert_array_equal(ignored[1:], 0.0)
+
+
+@pytest.mark.parametrize("weights, distances, expected", [
+    ([[0.0, 1.0, 0.0]], [2.0], 0.0),  # all weight at the known depth (midpoint 2)
+    ([[0.0, 0.0, 0.0]], [2.0], 1.0),  # transparent: disparity 0 against 2 / 2
+    ([[0.5, 0.0, 0.5]], [2.0], 0.5 * (2 / 1 - 1) ** 2 + 0.5 * (2 / 3 - 1) ** 2),
+])
+def test_disparity_error_penalises_weight_away_from_the_known_depth(weights, distances,
+                                                                    expected):
+  edges = np.array([[0.5, 1.5, 2.5, 3.5]], np.float32)
+  value = losses.disparity_error(edges, np.array(weights, np.float32),
+                                 np.array(distances, np.float32), 2.0, np.ones(1, np.float32))
+  np.testing.assert_allclose(value, expected, rtol=1e-5)

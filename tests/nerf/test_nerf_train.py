@@ -6,7 +6,7 @@ import pytest
 from small_nerf import SMALL_CONFIG, count_compilations, small_model
 
 from signerf_jax import checkpoints, ownership, training_loop
-from signerf_jax.nerf import evaluate, render, train, training_data, training_run
+from signerf_jax.nerf import evaluate, keypoint_depth, render, train, training_data, training_run
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.training_loop import TrainingDiverged
 
@@ -228,3 +228,27 @@ def test_the_opacity_prior_is_part_of_the_training_loss_when_weighted(sphere):
   assert 0 < entropy <= np.log(2) + 1e-6
   mse = 10 ** (-float(statistics["psnr"]) / 10)
   assert float(statistics["loss"]) >= mse + 0.5 * entropy - 1e-6
+
+
+@pytest.mark.slow
+def test_keypoint_depth_is_part_of_the_training_loss_and_its_gradients_finite(sphere):
+  model = small_model(sphere)
+  # A budget every ray fits (the untrained grid samples everywhere; the keypoint rays come last).
+  model = dataclasses.replace(model, capacity=dataclasses.replace(model.capacity,
+                                                                  samples_per_batch=65536))
+  config = dataclasses.replace(SMALL_CONFIG, keypoint_depth_weight=5.0, keypoint_rays=8)
+  keypoints = keypoint_depth.KeypointDepths(np.array([0, 3], np.int32),
+                                            np.array([[12.5, 12.5], [3.5, 20.5]], np.float32),
+                                            np.array([1.5, 2.5], np.float32))
+  data = training_data.TrainingData.from_dataset(sphere).replace(keypoints=keypoints)
+  state = train.init_state(model, config)
+  step = jax.jit(train.train_step, static_argnums=(0, 1))
+  new_state, statistics = step(model, config, state, data, np.float32(0.5))
+  error = float(statistics["keypoint_depth"])
+  assert error > 0  # an untrained field is a fog, not a surface at the keypoints
+  mse = 10 ** (-float(statistics["psnr"]) / 10)
+  assert float(statistics["loss"]) >= mse + 5.0 * error - 1e-6
+  assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(new_state.variables))
+  for off in (SMALL_CONFIG, dataclasses.replace(SMALL_CONFIG, keypoint_depth_weight=0.0)):
+    _, without = step(model, off, state, data, np.float32(0.5))
+    assert "keypoint_depth" not in without

@@ -14,7 +14,7 @@ from signerf_jax.clip import tokenizer as tokenizer_lib
 from signerf_jax.diffusion import pipeline
 from signerf_jax.editing import conditioning as conditioning_lib
 from signerf_jax.editing import select as select_lib
-from signerf_jax.editing.config import EditSettings, as_json
+from signerf_jax.editing.config import EditSettings, as_json, training_key
 from signerf_jax.editing.project import load_arrays, save_arrays
 from signerf_jax.editing.stages.context import EditContext
 from signerf_jax.errors import InputError
@@ -75,7 +75,7 @@ def original_settings(context: EditContext) -> dict[str, Any]:
   settings = context.settings
   if settings.edit.original_run:
     return {"original_run": str(Path(settings.edit.original_run).resolve())}
-  key = {"data": context.data_options, "train": as_json(settings.training["original"]),
+  key = {"data": context.data_options, "train": training_key(settings.training["original"]),
          "capacity": as_json(settings.capacity)}
   # Only when set: the keys of edits made before replays existed stay as they were.
   return {**key, "replay": settings.edit.replay} if settings.edit.replay else key

@@ -12,7 +12,7 @@ import numpy as np
 
 from signerf_jax.data import load_dataset
 from signerf_jax.editing import finetune
-from signerf_jax.editing.config import as_json
+from signerf_jax.editing.config import as_json, training_key
 from signerf_jax.editing.stages.context import EditContext
 from signerf_jax.nerf import training_run
 
@@ -31,7 +31,7 @@ def finetune_settings(context: EditContext, iteration: int) -> dict[str, Any]:
   capacity when retraining)."""
   method = update_method(context, iteration)
   settings = {"method": method, "losses": as_json(context.settings.finetune),
-              "train": as_json(context.settings.training[method])}
+              "train": training_key(context.settings.training[method])}
   if context.settings.edit.replay:  # Only when set, as the original training's key.
     settings["replay"] = context.settings.edit.replay
   if method == "retrain":

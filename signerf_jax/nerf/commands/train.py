@@ -127,6 +127,9 @@ def _train_and_evaluate(args: argparse.Namespace, dataset, model, config, option
     statistics = trainer.last_statistics
     message = (f"signerf train: {trainer.step} steps, {trainer.seconds_trained:.0f} s trained, "
                f"last batch {statistics.get('psnr', float('nan')):.2f} dB")
+    if trainer.data.keypoints is not None:
+      message += (f", depth at {trainer.data.keypoints.count} triangulated keypoint "
+                  "observations (a sparse capture)")
     if not args.skip_eval:
       report = evaluate_command.evaluate_run(run_dir)
       message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "

@@ -1,0 +1,16 @@
+"""Stage keys: settings added after edits were first keyed leave those edits' keys as they were."""
+
+import dataclasses
+
+from signerf_jax.editing import config
+from signerf_jax.nerf.train import TrainConfig
+
+
+def test_an_edit_keys_its_trainings_without_the_sparse_priors_at_their_defaults():
+  # Edits keyed before these settings existed keep their trained NeRFs.
+  key = config.training_key(TrainConfig())
+  assert not set(config.LATER_TRAINING_FIELDS) & set(key)
+  assert set(key) | set(config.LATER_TRAINING_FIELDS) == {
+      field.name for field in dataclasses.fields(TrainConfig)}
+  assert config.training_key(TrainConfig(keypoint_depth_weight=0.0))[
+      "keypoint_depth_weight"] == 0.0
