@@ -173,7 +173,7 @@ def neighbour_pairs(num_views: int, settings: ConsistencySettings,
   return np.asarray(sorted(set(pairs)), np.int64).reshape(-1, 2)
 
 
-def _gray_uint8(image: np.ndarray) -> np.ndarray:
+def gray_uint8(image: np.ndarray) -> np.ndarray:
   """[H, W, 3] float in [0, 1] or uint8 -> [H, W] uint8 luma (OpenCV's RGB weights)."""
   image = np.asarray(image)
   if image.dtype != np.uint8:
@@ -201,7 +201,7 @@ def detect_features(grays, masks=None, settings: ConsistencySettings = Consisten
   """SIFT keypoints and descriptors of each view.
 
   Args:
-    grays: N [H, W] uint8 luma images (`_gray_uint8`).
+    grays: N [H, W] uint8 luma images (`gray_uint8`).
     masks: optional [N, H, W] selection masks; keypoints are kept inside their dilation only.
     settings: `max_keypoints` and `mask_dilation_pixels` apply.
   Returns:
@@ -365,7 +365,7 @@ def image_set_consistency(images, cameras: camera_lib.Cameras | None = None, mas
   if masks is not None and np.shape(masks) != images.shape[:3]:
     raise InputError(f"masks have shape {np.shape(masks)}, expected {images.shape[:3]}",
                      field="masks")
-  match = _matcher([_gray_uint8(image) for image in images], masks, settings)
+  match = _matcher([gray_uint8(image) for image in images], masks, settings)
   pairs = []
   for first, second in neighbour_pairs(len(images), settings, cameras):
     matched_first, matched_second = match(first, second)

@@ -98,11 +98,12 @@ def triangulate(images, cameras: camera_lib.Cameras,
                 settings: KeypointSettings = KeypointSettings()) -> KeypointDepths:
   """The keypoint depths of training `images` [N, H, W, 3] (float in [0, 1] or uint8) taken by
   `cameras` (module docstring). Empty when nothing matches (e.g. textureless views)."""
-  grays = [consistency._gray_uint8(image) for image in images]
+  grays = [consistency.gray_uint8(image) for image in images]
   features = consistency.detect_features(grays)
   ideal = consistency.ideal_pixels(cameras, [points for points, _ in features])
   pairs = consistency.neighbour_pairs(len(images), consistency.ConsistencySettings(
       neighbours="distance", num_neighbours=settings.num_neighbours), cameras)
+  centres = np.asarray(cameras.positions, np.float64)
   indices, pixels, distances = [], [], []
   for first, second in pairs:
     matches = consistency.ratio_test_matches(features[first][1], features[second][1],
@@ -116,10 +117,9 @@ def triangulate(images, cameras: camera_lib.Cameras,
     points, kept = _triangulated(cameras, first, second, ideal_first[close], ideal_second[close],
                                  settings)
     for view, column in ((first, 0), (second, 1)):
-      centre = np.asarray(cameras.positions, np.float64)[view]
       indices.append(np.full(int(kept.sum()), view))
       pixels.append(features[view][0][matches[close][kept, column]] + 0.5)
-      distances.append(np.linalg.norm(points[kept] - centre, axis=1))
+      distances.append(np.linalg.norm(points[kept] - centres[view], axis=1))
   if not indices:
     return KeypointDepths(np.zeros(0, np.int32), np.zeros((0, 2), np.float32),
                           np.zeros(0, np.float32))
