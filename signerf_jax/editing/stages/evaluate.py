@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -78,7 +79,10 @@ def _consistency(context: EditContext, edited_views: EditedViews) -> dict[str, A
                                conditioned.control[chosen], context.tile_boxes(cameras))
   keys = np.repeat(generation.seed_key(context.settings.edit.seed)[None], len(chosen), axis=0)
   start = time.perf_counter()
-  independent = evaluation.independent_edits(context.generator(1), context.layout, views, keys)
+  # A few batches at a size nothing else samples: Winograd's convolutions would add more
+  # compilation than these calls earn back (`layers.winograd_convolutions`).
+  generator = dataclasses.replace(context.generator(1), winograd_convolutions=False)
+  independent = evaluation.independent_edits(generator, context.layout, views, keys)
   seconds = time.perf_counter() - start
   consistency = evaluation.consistency_comparison(
       {"original": views.images, "sheet_propagated": edited, "independent": independent},
