@@ -238,6 +238,16 @@ def test_a_nerf_conditioned_near_the_selection_matches_its_full_frames(random_ne
   assert conditioned[0].selected.any() and not rendered.all()
 
 
+def test_chunks_of_views_find_their_pixels_to_render_with_one_program(random_nerf):
+  scene, dataset, model, variables = random_nerf
+  edit_selection, config = box_selection(scene, mode="silhouette")
+  image_rectangles._hull_bounds.clear_cache()  # pylint: disable=protected-access
+  for chunk in ([0, 1, 2, 3], [4, 5], [6]):
+    conditioning.condition_views(model, variables, dataset.cameras, chunk, edit_selection,
+                                 config, 4, only_where_selected_can_appear=True)
+  assert image_rectangles._hull_bounds._cache_size() == 1  # pylint: disable=protected-access
+
+
 def test_the_second_update_renders_the_edited_nerf_only_under_the_masks(random_nerf, tmp_path,
                                                                         monkeypatch):
   scene, dataset, model, variables = random_nerf
