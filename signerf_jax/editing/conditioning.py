@@ -170,14 +170,15 @@ def condition_views(model: nerf_model.NerfModel, variables, cameras: camera_lib.
   chosen = cameras.take(indices)
   padding = np.repeat(len(indices) - 1, chunk_size - len(indices))
   padded = np.concatenate([np.arange(len(indices)), padding])
+  padded_cameras = chosen.take(padded)
   pixels = None
   if only_where_selected_can_appear:
     # Found for the padded cameras too: a last, shorter chunk compiles no program of its own.
-    pixels = pixels_to_render(chosen.take(padded), edit_selection, config,
+    pixels = pixels_to_render(padded_cameras, edit_selection, config,
                               None if context_boxes is None else
                               np.asarray(context_boxes)[indices][padded])[:len(indices)]
   renders = render.render_cameras(model, variables, chosen, pixels=pixels)
-  conditioned = _derive(chosen.take(padded), {name: array[padded] for name, array
+  conditioned = _derive(padded_cameras, {name: array[padded] for name, array
                                               in renders.items()}, edit_selection, config)
   return conditioned.take(np.arange(len(indices)))
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from signerf_jax.nerf import sampling
+
 
 def weighted_mse(predicted, target, weights):
   """sum_r w_r |p_r - t_r|^2 / (3 sum_r w_r): mean squared error over weighted rays.
@@ -32,7 +34,7 @@ def distortion_loss(edges, weights, scale: float, ray_weights):
     ray_weights: [R] per-ray loss weights.
   """
   edges = jnp.minimum(edges, edges[..., -2:-1] * 2.0) / scale  # an infinite last interval
-  midpoints = 0.5 * (edges[..., 1:] + edges[..., :-1])
+  midpoints = sampling.midpoints(edges)
   cumulative_weight = jnp.cumsum(weights, axis=-1) - weights
   cumulative_moment = jnp.cumsum(weights * midpoints, axis=-1) - weights * midpoints
   pairwise = 2.0 * jnp.sum(weights * (midpoints * cumulative_weight - cumulative_moment), axis=-1)
@@ -68,7 +70,7 @@ def disparity_error(edges, weights, distances, distance_unit: float, ray_weights
     distances: [R] known distances along the rays (scene units).
     ray_weights: [R] per-ray loss weights.
   """
-  midpoints = 0.5 * (edges[..., 1:] + edges[..., :-1])
+  midpoints = sampling.midpoints(edges)
   disparity = jnp.where(jnp.isfinite(midpoints),
                         distance_unit / jnp.maximum(midpoints, 1e-6 * distance_unit), 0.0)
   target = distance_unit / jnp.maximum(distances, 1e-6 * distance_unit)
@@ -159,6 +161,6 @@ def near_camera_gradient_scaling(densities, rgbs, edges, distance_unit: float):
     distance_unit: distance (scene units) from which gradients are unscaled (the cameras'
       distance to the scene, as nerfstudio's unit-scaled scenes use 1).
   """
-  distances = 0.5 * (edges[..., 1:] + edges[..., :-1])
+  distances = sampling.midpoints(edges)
   scale = jnp.minimum(jax.lax.stop_gradient(distances) / distance_unit, 1.0)**2
   return scale_gradient(densities, scale), scale_gradient(rgbs, scale[..., None])
