@@ -1,5 +1,6 @@
 """Speed against error of the NeRF on real captures and synthetic scenes: held-out PSNR against
-training seconds, the generalisation gap to the training views and near-camera floaters.
+training seconds, the generalisation gap to the training views, near-camera floaters and the
+held-out depth's multi-view consistency (`metrics.depth_consistency`).
 
   python experiments/bench_nerf.py [--gin_file bench_nerf] [--gin_param 'bench_nerf.scenes = ["lego"]']
 
@@ -123,7 +124,8 @@ def train_and_measure(name: str, seconds: Sequence[float], figure_path: Path,
                     if "held_out_supersampled" in point else "")
     print(f"[{name}] {point['seconds']:.0f} s, step {point['step']}: held-out "
           f"{held_out_metrics['psnr']:.2f} dB / SSIM {held_out_metrics['ssim']:.3f}{train_psnr}"
-          f"{supersampled}, near-camera weight {held_out_metrics['near_camera_weight']:.4f}",
+          f"{supersampled}, near-camera weight {held_out_metrics['near_camera_weight']:.4f}, "
+          f"depth consistency {held_out_metrics['depth_consistency']:.3f}",
           flush=True)
   files.write_image(figure_path, figure(held_out, renders))
   rays = trainer.step * model.capacity.rays_per_batch

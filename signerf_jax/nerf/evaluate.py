@@ -14,6 +14,7 @@ import numpy as np
 from signerf_jax import checkpoints
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import depth_consistency
 from signerf_jax.metrics import image as image_metrics
 from signerf_jax.metrics import lpips
 from signerf_jax.nerf import render, train, training_run
@@ -78,7 +79,10 @@ def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset,
       papers do; lpips None without weights), depth_mae and depth_rmse (z-depth, scene units,
       over pixels with ground truth > 0; None without ground truth), near_camera_weight (the
       share of all render weight nearer than near_camera_fraction * scene_radius to the
-      camera: near-camera floaters), num_views, supersampling (the rays per pixel side used).
+      camera: near-camera floaters), num_views, supersampling (the rays per pixel side used),
+      depth_consistency (the share of the rendered surface whose median depth the nearest other
+      view agrees with, `metrics.depth_consistency`: a depth measure without ground truth;
+      None for one view).
     renders: `render.render_cameras`' outputs for the views.
   """
   near_distance = near_camera_fraction * scene_radius(model, dataset.cameras)
@@ -100,7 +104,8 @@ def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset,
       "depth_mae": None, "depth_rmse": None,
       "near_camera_weight": float(np.sum(renders["near_weight"]) /
                                   max(np.sum(renders["accumulation"]), 1e-12)),
-      "num_views": dataset.num_images, "supersampling": supersampling}
+      "num_views": dataset.num_images, "supersampling": supersampling,
+      "depth_consistency": _depth_consistency(dataset.cameras, renders)}
   if dataset.depths is not None:
     known = dataset.depths > 0
     if not np.any(known):
@@ -110,6 +115,15 @@ def evaluate(model: nerf_model.NerfModel, variables, dataset: Dataset,
     metrics["depth_mae"] = float(np.mean(np.abs(error)))
     metrics["depth_rmse"] = float(np.sqrt(np.mean(error**2)))
   return metrics, renders
+
+
+def _depth_consistency(cameras, renders) -> float | None:
+  """The share of the views' rendered surface their nearest neighbour agrees with
+  (`metrics.depth_consistency`, on the median depth); None for a single view."""
+  if cameras.num_cameras < 2:
+    return None
+  return depth_consistency.depth_consistency(cameras, renders["median_depth"],
+                                             renders["accumulation"])["consistent_fraction"]
 
 
 def training_views(dataset: Dataset, count: int = TRAIN_VIEWS_EVALUATED) -> Dataset:
