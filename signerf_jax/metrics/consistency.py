@@ -161,16 +161,24 @@ def neighbour_pairs(num_views: int, settings: ConsistencySettings,
     if cameras is None:
       raise InputError(f"neighbours={settings.neighbours!r} needs the cameras (use 'index' "
                        "without them)", field="consistency.neighbours")
-    if settings.neighbours == "distance":
-      positions = np.asarray(cameras.positions, np.float64)
-      dissimilarity = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
-    else:
-      forward = np.asarray(cameras.forward, np.float64)
-      dissimilarity = -forward @ forward.T  # Ordered like the angle between directions.
-    np.fill_diagonal(dissimilarity, np.inf)
-    nearest = np.argsort(dissimilarity, axis=1, kind="stable")[:, :count]
+    nearest = nearest_cameras(cameras, count, settings.neighbours)
     pairs = [(min(i, j), max(i, j)) for i in range(num_views) for j in nearest[i]]
   return np.asarray(sorted(set(pairs)), np.int64).reshape(-1, 2)
+
+
+def nearest_cameras(cameras: camera_lib.Cameras, count: int, by: str = "distance"
+                    ) -> np.ndarray:
+  """[N, count] int: each camera's `count` nearest other cameras, nearest first, by the
+  distance between their centres ("distance") or the angle between their viewing directions
+  ("angle")."""
+  if by == "distance":
+    positions = np.asarray(cameras.positions, np.float64)
+    dissimilarity = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+  else:
+    forward = np.asarray(cameras.forward, np.float64)
+    dissimilarity = -forward @ forward.T  # Ordered like the angle between directions.
+  np.fill_diagonal(dissimilarity, np.inf)
+  return np.argsort(dissimilarity, axis=1, kind="stable")[:, :count]
 
 
 def gray_uint8(image: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ import numpy as np
 
 from signerf_jax import camera as camera_lib
 from signerf_jax.errors import InputError
+from signerf_jax.metrics import consistency
 
 # COLMAP's stereo fusion defaults (max_reproj_error 2 px, max_depth_error 0.01).
 PIXEL_TOLERANCE = 2.0
@@ -83,10 +84,7 @@ def nearest_views(cameras: camera_lib.Cameras) -> np.ndarray:
   if cameras.num_cameras < 2:
     raise InputError(f"needs at least 2 views, got {cameras.num_cameras}",
                      field="cameras")
-  centres = np.asarray(cameras.positions, np.float64)
-  distances = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-  np.fill_diagonal(distances, np.inf)
-  return np.argmin(distances, axis=1)
+  return consistency.nearest_cameras(cameras, 1)[:, 0]
 
 
 def depth_consistency(cameras: camera_lib.Cameras, depths, opacities,
