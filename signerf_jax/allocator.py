@@ -11,11 +11,12 @@ few cores that kernel time is a large share of NeRF training (docs/performance.m
 heap, large blocks come from that heap instead of `mmap`, and the heap is trimmed only past
 2 GiB of free space at its top. Freed pages then stay mapped and are reused; the results are the
 same bytes. The costs: the process keeps the memory it has used (its peak, plus what
-fragmentation adds) until it exits, and the diffusion sampler runs slower: its threads contend
-for the one heap, and its large blocks served from the heap are slower too (each half of the
-setting alone slows it; docs/performance.md). So the commands that train or render a NeRF
-call it first thing (`signerf_jax.cli.KEEP_FREED_MEMORY_COMMANDS`; the viewer too, whose frames
-are NeRF renders), those that only sample do not, and library code never does.
+fragmentation adds) until it exits, and the diffusion sampler and XLA's compiler run slower:
+their threads contend for the one heap, and large blocks served from the heap are slower too
+(docs/performance.md). So the commands that train or render a NeRF call it first thing
+(`signerf_jax.cli.keeps_freed_memory`; the viewer too, whose frames are NeRF renders), the
+edit commands run their NeRF trainings in a child process that calls it
+(`editing.commands.training_process`), and library code never does.
 SIGNERF_KEEP_FREED_MEMORY=0 in the environment leaves the allocator as it was. Elsewhere than
 glibc (macOS, musl) it does nothing, and so it does where JAX computes on a GPU or TPU: their
 buffers are the device's memory, not `malloc`'s, and the setting was measured on CPUs only. The
@@ -81,18 +82,26 @@ def backend_before_start() -> str:
   return "gpu" if _jax_plugins_installed() else "cpu"
 
 
+def can_keep_freed_memory(backend: str | None = None) -> bool:
+  """Whether `keep_freed_memory` applies its settings in a process computing on `backend` (None:
+  `backend_before_start()`): a CPU, with glibc, and the environment does not say 0."""
+  if os.environ.get(ENVIRONMENT_VARIABLE, "1").strip() == "0":
+    return False
+  return (backend or backend_before_start()) == "cpu" and _glibc() is not None
+
+
+def keeps_freed_memory() -> bool:
+  """Whether this process keeps freed memory (`keep_freed_memory` applied its settings)."""
+  return _kept
+
+
 def keep_freed_memory(backend: str | None = None) -> bool:
-  """Applies the settings above where JAX computes on a CPU (`backend`; None:
-  `backend_before_start()`), unless the environment says 0 or the C library is not glibc;
-  returns whether the process now keeps freed memory. Call it before JAX starts its threads
-  (their arenas exist from then on); calling it again changes nothing."""
+  """Applies the settings above where `can_keep_freed_memory(backend)`; returns whether the
+  process now keeps freed memory. Call it before JAX starts its threads (their arenas exist
+  from then on); calling it again changes nothing."""
   global _kept
-  if _kept or os.environ.get(ENVIRONMENT_VARIABLE, "1").strip() == "0":
+  if _kept or not can_keep_freed_memory(backend):
     return _kept
-  if (backend or backend_before_start()) != "cpu":
-    return False
   library = _glibc()
-  if library is None:
-    return False
   _kept = all([library.mallopt(option, value) == 1 for option, value in SETTINGS])
   return _kept

@@ -102,12 +102,20 @@ DATA_FORMATS = "nerfstudio, Blender, LLFF, COLMAP or NeuS/IDR"
 DATA_HELP = f"dataset directory ({DATA_FORMATS}; the format is detected)"
 
 # Commands whose process keeps the memory XLA frees (signerf_jax.allocator): a NeRF step or a
-# rendered chunk frees and re-faults its buffers on every call (`eval` renders the views it
-# measures). `edit` and `demo` too: their time-budgeted NeRF stages run more steps, which
-# outweighs their sampling stages running slower that way; and `view`, whose frames come sooner
-# while its occasional preview samples slower. `preview` and `update` only sample and keep
-# glibc's defaults (docs/performance.md).
-KEEP_FREED_MEMORY_COMMANDS = ("train", "finetune", "render", "eval", "edit", "demo", "view")
+# rendered chunk frees and re-faults its buffers on every call (`eval --run` renders the views it
+# measures); and `view`, whose frames come sooner while its occasional preview samples slower.
+# The edit commands (`edit`, `preview`, `update`, `finetune`, `eval --edit`, `demo`) do not: their
+# sampling, renders and compilations are faster without, and their NeRF trainings run in a
+# process of their own that keeps it (`editing.commands.training_process`; docs/performance.md).
+KEEP_FREED_MEMORY_COMMANDS = ("train", "render", "eval", "view")
+
+
+def keeps_freed_memory(args: argparse.Namespace) -> bool:
+  """Whether the command `args` asks for keeps freed memory in its own process."""
+  if args.command == "eval" and args.edit:
+    return False  # An edit's evaluation: it samples and compiles more than it renders.
+  return args.command in KEEP_FREED_MEMORY_COMMANDS
+
 
 # Commands that run under jax.distributed when asked (`distributed`): their computations split
 # over the devices of every process.
@@ -205,7 +213,7 @@ def use_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
-def _raise_terminated(signum: int, frame) -> None:
+def raise_terminated(signum: int, frame) -> None:
   """SIGTERM's handler while a command runs: stops it as Ctrl-C does (`training_loop`)."""
   del signum, frame
   from signerf_jax import training_loop  # pylint: disable=g-import-not-at-top  (already loaded)
@@ -229,7 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
   and the line names the step and where it was saved)."""
   argv = list(sys.argv[1:] if argv is None else argv)
   args = build_parser(argv).parse_args(argv)
-  if args.command in KEEP_FREED_MEMORY_COMMANDS:
+  if keeps_freed_memory(args):
     allocator.keep_freed_memory()  # Before JAX starts its threads.
   # Here, not at the top: `signerf --help` stays fast without tqdm.
   from signerf_jax import training_loop  # pylint: disable=g-import-not-at-top
@@ -238,7 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
   # as clean for it.
   catch_sigterm = (args.command != "view"
                    and threading.current_thread() is threading.main_thread())
-  previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if catch_sigterm else None
+  previous_sigterm = signal.signal(signal.SIGTERM, raise_terminated) if catch_sigterm else None
   try:
     module = importlib.import_module(args.module_name)
     output_flag = getattr(args, "output_flag", None)  # `add_output_argument`'s.

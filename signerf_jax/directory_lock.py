@@ -39,6 +39,22 @@ def check_free(lock_path: Path, path: Path, flag: str, where: str = "") -> None:
     os.close(descriptor)
 
 
+def holder(lock_path: Path) -> int | None:
+  """The pid of the process holding the lock in `lock_path`, or None when none holds it."""
+  if not lock_path.is_file():
+    return None
+  descriptor = os.open(lock_path, os.O_RDONLY)
+  try:
+    try:
+      fcntl.flock(descriptor, fcntl.LOCK_SH | fcntl.LOCK_NB)
+      return None
+    except BlockingIOError:
+      text = os.pread(descriptor, 32, 0).decode("ascii", "replace").strip()
+      return int(text) if text.isdigit() else None
+  finally:
+    os.close(descriptor)
+
+
 def hold(lock_path: Path, path: Path, flag: str, where: str = "") -> int:
   """Takes the lock in `lock_path` (created if missing) for this process and writes its pid
   there. Returns the descriptor: closing it releases the lock.

@@ -13,7 +13,9 @@ While a directory is claimed, `files.atomic_path` records each write before the 
 (`prepare_write`: `.signerf/written.log`, one JSON line) and never replaces an unrecorded file;
 `remove_written` deletes recorded files only. The project knows its files by this record, never
 by a name or a folder: a user's `notes.txt` or `selection/my.json` beside them stays. A directory
-inside a claimed one (an edit's original/ run) belongs to the outer claim; claims nest.
+inside a claimed one (an edit's original/ run) belongs to the outer claim; claims nest. A child
+process the claiming process waits for may join its claim (`joined`; an edit's NeRF trainings
+run in one): it records its writes in the same log, and the parent reads them back (`refresh`).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from signerf_jax import directory_lock
+from signerf_jax import directory_lock, written_log
 from signerf_jax.errors import InputError
 
 MARKER_FOLDER = ".signerf"
@@ -51,7 +53,7 @@ class _Claim:
 
   root: Path  # Resolved (symbolic links followed).
   kind: str
-  lock_descriptor: int
+  lock_descriptor: int | None  # None: a child's claim, whose lock its parent holds.
   log_descriptor: int
   written: set[str]  # Recorded files, as POSIX paths relative to the root.
   depth: int = 1
@@ -63,6 +65,13 @@ _mutex = threading.RLock()
 
 def _marker(root: Path, name: str) -> Path:
   return root / MARKER_FOLDER / name
+
+
+def _write_marker(root: Path, name: str, text: str) -> None:
+  """Writes one of the marker folder's files atomically."""
+  path = _marker(root, name)
+  path.parent.mkdir(exist_ok=True)
+  written_log.write_atomically(path, text)
 
 
 def owner_root(path: str | os.PathLike) -> Path | None:
@@ -189,7 +198,7 @@ def _claim(path: Path, kind: str, inputs, flag: str | None) -> _Claim:
            "created": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n")
       root = resolved
     lock = directory_lock.hold(_marker(root, LOCK_FILE), path, flag, _belongs(root, path))
-    written = _clean_and_compact(root)
+    written = written_log.clean_and_compact(root, _marker(root, LOG_FILE))
     log = os.open(_marker(root, LOG_FILE), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     claim = _Claim(root, owner_kind(root), lock, log, written)
     _claims[root] = claim
@@ -202,53 +211,44 @@ def _release(claim: _Claim) -> None:
     if claim.depth == 0:
       del _claims[claim.root]
       os.close(claim.log_descriptor)
-      os.close(claim.lock_descriptor)  # Drops the lock.
+      if claim.lock_descriptor is not None:
+        os.close(claim.lock_descriptor)  # Drops the lock.
 
 
-def _write_marker(root: Path, name: str, text: str) -> None:
-  """Writes one of the marker folder's files atomically (temporary file, fsync, rename)."""
-  path = _marker(root, name)
-  path.parent.mkdir(exist_ok=True)
-  temporary = path.with_name(f".{name}.{secrets.token_hex(4)}")
-  with open(temporary, "w", encoding="utf-8") as handle:
-    handle.write(text)
-    handle.flush()
-    os.fsync(handle.fileno())
-  os.replace(temporary, path)
+@contextlib.contextmanager
+def joined(path: str | os.PathLike) -> Iterator[Path]:
+  """Joins, in a child process, the claim its parent holds on `path` (while the parent waits
+  for it): the child's writes are recorded in that claim's log, as the parent's are; the lock
+  stays the parent's. The parent reads them back with `refresh(path)`.
+
+  Raises:
+    InputError naming `path`: it is not in a signerf directory, or this process's parent does
+      not hold its lock.
+  """
+  root = owner_root(path)
+  if root is None:
+    raise InputError("is not in a directory signerf made: nothing to join", path)
+  parent = os.getppid()
+  if directory_lock.holder(_marker(root, LOCK_FILE)) != parent:
+    raise InputError(f"is not claimed by this process's parent (pid {parent})", path)
+  with _mutex:
+    written, _ = written_log.read(_marker(root, LOG_FILE))
+    log = os.open(_marker(root, LOG_FILE), os.O_WRONLY | os.O_APPEND)
+    claim = _Claim(root, owner_kind(root), None, log, written)
+    _claims[root] = claim
+  try:
+    yield Path(path)
+  finally:
+    _release(claim)
 
 
-def _read_log(root: Path) -> tuple[set[str], set[str]]:
-  """(files written, temporary files named) by the log's records. A record cut short by a
-  kill is skipped: its file was not yet created."""
-  written, temporaries = set(), set()
-  path = _marker(root, LOG_FILE)
-  if not path.is_file():
-    return written, temporaries
-  for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-    try:
-      operation, relative, *temporary = json.loads(line)
-    except (ValueError, TypeError):
-      continue
-    if operation == "w":
-      written.add(relative)
-      temporaries.update(temporary)
-    elif operation == "r":
-      written.discard(relative)
-  return written, temporaries
-
-
-def _clean_and_compact(root: Path) -> set[str]:
-  """Removes the temporary files of writes a kill interrupted (their recorded names only) and
-  rewrites the log as the files written that still exist (a file the project wrote and the
-  user removed is not the project's any more). Returns those files."""
-  written, temporaries = _read_log(root)
-  for relative in temporaries:
-    with contextlib.suppress(FileNotFoundError, IsADirectoryError):
-      (root / relative).unlink()
-  written = {relative for relative in written if (root / relative).is_file()}
-  _write_marker(root, LOG_FILE, "".join(json.dumps(["w", relative]) + "\n"
-                                        for relative in sorted(written)))
-  return written
+def refresh(path: str | os.PathLike) -> None:
+  """Reads the files written back from the log of the claim holding `path` (a child process
+  that `joined` it wrote there too); nothing outside a claim."""
+  found = _claim_of(Path(path))
+  if found is not None:
+    with _mutex:
+      found[0].written = written_log.read(_marker(found[0].root, LOG_FILE))[0]
 
 
 def _active_claim(resolved: Path) -> _Claim | None:
@@ -278,12 +278,6 @@ def _claim_of(path: Path) -> tuple[_Claim, str] | None:
                          "nothing was written", path)
       return None
     return claim, resolved.relative_to(claim.root).as_posix()
-
-
-def _append(claim: _Claim, record: list[str]) -> None:
-  """Adds a record to the claim's log, on disk before the caller goes on."""
-  os.write(claim.log_descriptor, (json.dumps(record) + "\n").encode("utf-8"))
-  os.fsync(claim.log_descriptor)
 
 
 def check_replaceable(path: str | os.PathLike) -> None:
@@ -318,7 +312,7 @@ def prepare_write(path: str | os.PathLike) -> Path:
   if found is not None:
     claim, relative = found
     with _mutex:
-      _append(claim, ["w", relative, str(Path(relative).with_name(temporary.name).as_posix())])
+      written_log.append(claim.log_descriptor, ["w", relative, str(Path(relative).with_name(temporary.name).as_posix())])
       claim.written.add(relative)
   return temporary
 
@@ -329,7 +323,7 @@ def record_written(path: str | os.PathLike) -> None:
   if found is not None:
     claim, relative = found
     with _mutex:
-      _append(claim, ["w", relative])
+      written_log.append(claim.log_descriptor, ["w", relative])
       claim.written.add(relative)
 
 
@@ -343,7 +337,7 @@ def remove_file(path: str | os.PathLike) -> None:
     path.unlink()
   if found is not None and found[1] in found[0].written:
     with _mutex:
-      _append(found[0], ["r", found[1]])
+      written_log.append(found[0].log_descriptor, ["r", found[1]])
       found[0].written.discard(found[1])
 
 
@@ -376,7 +370,7 @@ def remove_written(path: str | os.PathLike) -> int:
     for relative in chosen:
       with contextlib.suppress(FileNotFoundError):
         (claim.root / relative).unlink()
-      _append(claim, ["r", relative])
+      written_log.append(claim.log_descriptor, ["r", relative])
       claim.written.discard(relative)
       folders.update(parent for parent in Path(relative).parents
                      if parent.as_posix().startswith(prefix) and parent != Path("."))

@@ -185,6 +185,43 @@ def test_claims_nest_within_a_process(tmp_path):
   assert not (tmp_path / "edit" / "original" / ownership.MARKER_FOLDER).exists()
 
 
+def join_claim(edit: Path) -> subprocess.CompletedProcess:
+  """A child process that joins the claim on `edit` and writes original/model.json there, then
+  tries to replace the user's reference/paper.pdf (it prints the error)."""
+  script = textwrap.dedent(f"""
+      from pathlib import Path
+      from signerf_jax import files, ownership
+      from signerf_jax.errors import InputError
+      edit = Path({str(edit)!r})
+      with ownership.joined(edit):
+        files.write_text(edit / "original" / "model.json", "{{}}")
+        try:
+          files.write_text(edit / "reference" / "paper.pdf", "overwritten")
+        except InputError as error:
+          print(error)
+  """)
+  return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                        timeout=60)
+
+
+def test_a_child_that_joins_the_claim_writes_under_it_and_the_parent_reads_that_back(tmp_path):
+  edit = tmp_path / "edit"
+  with ownership.claimed(edit, ownership.EDIT):
+    contents = write_user_files(edit)
+    child = join_claim(edit)
+    assert child.returncode == 0, child.stderr
+    assert "paper.pdf: exists and was not written by signerf" in child.stdout
+    ownership.refresh(edit)
+    assert ownership.written_files(edit) == [edit / "original" / "model.json"]
+    assert ownership.remove_written(edit) == 1
+  assert_unchanged(contents)
+  # Once the claim is released, no process may join it.
+  child = join_claim(edit)
+  assert child.returncode != 0
+  assert "edit: is not claimed by this process's parent" in child.stderr
+  assert not (edit / "original" / "model.json").exists()
+
+
 def hold_claim(directory: Path) -> subprocess.Popen:
   """A process that claims `directory` and waits (it prints "held" once it holds the lock)."""
   script = textwrap.dedent(f"""

@@ -32,6 +32,7 @@ from signerf_jax import cli, configs
 from signerf_jax.diffusion.attention import AttentionOptions
 from signerf_jax.diffusion.pipeline import GenerationOptions
 from signerf_jax.editing import generation, stages
+from signerf_jax.editing.commands import training_process
 from signerf_jax.editing.config import (GENERATION_SCOPES, TRAINING_RUNS, EditConfig,
                                         EditSettings, EvaluationConfig, FinetuneConfig,
                                         NerfConsistencySettings, NerfUpdate, PRIMITIVE_PREFIX,
@@ -306,14 +307,16 @@ def run_command(name: str, directory: str | Path, redo=(), progress: bool = True
   `directory`/config.gin first, which later commands read back). Each stage's progress lines go
   to `log`; by default, prefixed `signerf NAME`, to stderr as the progress bars do: stdout holds
   only the command's result (for `signerf eval --edit`, one JSON line). A refused directory is
-  named by --edit (`ownership.FLAGS`)."""
+  named by --edit (`ownership.FLAGS`). On a CPU the stages that train a NeRF run in a process of
+  their own (`training_process`)."""
   settings = edit_settings()
   if log is None:
     log = lambda line: print(f"signerf {name} {line}", file=sys.stderr, flush=True)
   with stages.claimed_edit(directory, settings):
     configs.save_gin_config(directory)
     return stages.run_edit(directory, settings, until=LAST_STAGE[name], redo=tuple(redo),
-                           progress=progress, log=log)
+                           progress=progress, log=log,
+                           run_training=training_process.training_runner())
 
 
 def run_stages(name: str, args: argparse.Namespace, extra_bindings=()

@@ -21,6 +21,8 @@ runner (runner.py) orders them, computes their keys, skips finished ones and tim
 """
 
 from signerf_jax.editing.stages.context import EditContext
-from signerf_jax.editing.stages.runner import claimed_edit, edit_key, pipeline_stages, run_edit
+from signerf_jax.editing.stages.runner import (RunTraining, Stage, claimed_edit, edit_key,
+                                               pipeline_stages, run_edit)
 
-__all__ = ["EditContext", "claimed_edit", "edit_key", "pipeline_stages", "run_edit"]
+__all__ = ["EditContext", "RunTraining", "Stage", "claimed_edit", "edit_key", "pipeline_stages",
+           "run_edit"]

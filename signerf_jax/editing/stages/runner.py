@@ -24,6 +24,11 @@ from signerf_jax.errors import InputError
 
 STAGE_KEY_FILE = ".stage_key.json"
 
+# How a stage that trains a NeRF is run: (stage, context) -> its summary line. None: in this
+# process, as every other stage (`signerf`'s edit commands on a CPU pass one that runs it in a
+# process of its own, `editing.commands.training_process`).
+RunTraining = Callable[["Stage", EditContext], str]
+
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
@@ -37,6 +42,9 @@ class Stage:
     folders: the edit directory's folders it writes (relative, with the iteration), cleared
       when the stage is redone with another key.
     description: what it does, shown while it runs.
+    iteration: the edit iteration it belongs to.
+    trains_nerf: the NeRF it trains (0: the original, else the iteration's edited one; None:
+      it trains none).
   """
 
   name: str
@@ -46,6 +54,7 @@ class Stage:
   folders: tuple[str, ...]
   description: str
   iteration: int = 1
+  trains_nerf: int | None = None
 
   def outputs(self, context: EditContext) -> tuple[Path, ...]:
     return tuple(context.directory.path(name, iteration=self.iteration) for name in self.folders)
@@ -87,7 +96,7 @@ def _iteration_stages(iteration: int) -> list[Stage]:
       Stage(f"finetune{suffix}", bind(nerf_update.update_nerf),
             bind(nerf_update.finetune_settings),
             (f"dataset{suffix}",) + (previous or ("original",)), ("edited",),
-            "updating the NeRF on the edited views", iteration),
+            "updating the NeRF on the edited views", iteration, trains_nerf=iteration),
   ]
 
 
@@ -98,7 +107,8 @@ def pipeline_stages(settings: EditSettings) -> list[Stage]:
       Stage("original", inputs.train_original, inputs.original_settings, (),
             () if settings.edit.original_run else ("original",),
             "loading the given trained NeRF" if settings.edit.original_run
-            else "training the original NeRF"),
+            else "training the original NeRF",
+            trains_nerf=None if settings.edit.original_run else 0),
       Stage("select", inputs.select, lambda context: as_json(context.settings.selection),
             ("original",), ("selection",), "building the selection"),
       *_iteration_stages(1),
@@ -183,7 +193,8 @@ def _check(settings: EditSettings, until: str, redo: tuple[str, ...],
 
 def run_edit(directory, settings: EditSettings, until: str = "evaluate",
              redo: tuple[str, ...] = (), progress: bool = True,
-             log: Callable[[str], None] = print) -> EditContext:
+             log: Callable[[str], None] = print,
+             run_training: RunTraining | None = None) -> EditContext:
   """Runs (or resumes) the pipeline in `directory` up to and including stage `until`, with
   `settings`.
 
@@ -193,12 +204,13 @@ def run_edit(directory, settings: EditSettings, until: str = "evaluate",
       that builds on them).
     progress: show progress bars.
     log: receives one line as each stage starts and ends.
+    run_training: runs the stages that train a NeRF (None: as the others, `Stage.run`).
   Returns:
     The run's context (its directory, settings and loaded inputs).
   """
   _check(settings, until, tuple(redo), log)
   with claimed_edit(directory, settings):
-    return _run_stages(directory, settings, until, tuple(redo), progress, log)
+    return _run_stages(directory, settings, until, tuple(redo), progress, log, run_training)
 
 
 def claimed_edit(directory, settings: EditSettings):
@@ -211,7 +223,8 @@ def claimed_edit(directory, settings: EditSettings):
 
 
 def _run_stages(directory, settings: EditSettings, until: str, redo: tuple[str, ...],
-                progress: bool, log: Callable[[str], None]) -> EditContext:
+                progress: bool, log: Callable[[str], None],
+                run_training: RunTraining | None) -> EditContext:
   context, stages = _start(directory, settings, until, redo, progress, log)
   for number, stage in enumerate(stages, 1):
     key = context.keys[stage.name]
@@ -224,7 +237,10 @@ def _run_stages(directory, settings: EditSettings, until: str, redo: tuple[str, 
     for folder in stage.outputs(context):
       _prepare_folder(folder, key)
     start = time.perf_counter()
-    summary = stage.run(context)
+    if run_training is not None and stage.trains_nerf is not None:
+      summary = run_training(stage, context)
+    else:
+      summary = stage.run(context)
     seconds = time.perf_counter() - start
     context.directory.finish(stage.name, key, seconds, summary)
     log(f"{label}: {summary} ({seconds:.1f} s)")

@@ -1,0 +1,185 @@
+"""An edit's NeRF trainings in a process of their own (`editing.commands.training_process`): only
+the stages that train run there, they train the same NeRFs bit for bit, what stops the child is
+raised in the parent, and Ctrl-C or SIGTERM checkpoints the child's steps and stops the command
+with one line and no traceback."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import gin
+import jax
+import numpy as np
+import pytest
+
+from signerf_jax import allocator, checkpoints, configs
+from signerf_jax.editing import commands, stages
+from signerf_jax.editing.commands import training_process
+from signerf_jax.editing.project import EditDirectory
+from signerf_jax.errors import InputError
+
+pytestmark = pytest.mark.slow
+
+SIGNERF = [sys.executable, "-m", "signerf_jax.cli"]
+PROGRESS_TIMEOUT = 300.0  # The child's first step compiles (tens of seconds on busy cores).
+EXIT_TIMEOUT = 120.0
+PROGRESS = re.compile(r"(\d+)/100000 \[")  # tqdm's bar of the original NeRF's training.
+INTERRUPTED = re.compile(r"^signerf edit: interrupted at step (\d+); checkpoint saved in (.+); "
+                         r"run the same command to resume$", re.MULTILINE)
+
+
+def edit_bindings(scene_dir: Path, model: Path, **overrides: str) -> list[str]:
+  """A box edit of the tiny scene with a few NeRF steps and a 2-step sampler."""
+  values = {"EditConfig.data": repr(str(scene_dir)), "EditConfig.prompt": "'a red cow'",
+            "EditConfig.model": repr(str(model)), "EditConfig.nerf_update": "'finetune'",
+            "SelectionConfig.kind": "'box'",
+            "SelectionConfig.box_min": "(-0.3, -0.3, -0.1)",
+            "SelectionConfig.box_max": "(0.3, 0.3, 0.3)",
+            "SheetConfig.tile_size": "16", "original/TrainConfig.steps": "20",
+            "finetune/TrainConfig.steps": "5", "PreviewConfig.seeds": "(0,)",
+            "first_iteration/GenerationOptions.num_inference_steps": "2",
+            "UpdateConfig.views_per_device": "4"}
+  values.update(overrides)
+  return [f"{name} = {value}" for name, value in values.items()]
+
+
+def settings_of(chosen: list[str]):
+  configs.parse_gin([], chosen)
+  try:
+    return commands.edit_settings()
+  finally:
+    gin.clear_config()
+
+
+@pytest.fixture
+def child_keeps_freed_memory(monkeypatch):
+  """The environment of a `signerf` outside the tests: the child keeps freed memory."""
+  monkeypatch.setenv(allocator.ENVIRONMENT_VARIABLE, "1")
+
+
+def test_the_runner_is_chosen_where_only_a_child_would_keep_freed_memory(monkeypatch):
+  monkeypatch.setattr(allocator, "_kept", False)
+  monkeypatch.setenv(allocator.ENVIRONMENT_VARIABLE, "1")
+  expected = (training_process.run_in_training_process if allocator._glibc() is not None  # pylint: disable=protected-access
+              else None)
+  assert training_process.training_runner() is expected
+  monkeypatch.setattr(allocator, "_kept", True)  # This process keeps it already.
+  assert training_process.training_runner() is None
+  monkeypatch.setattr(allocator, "_kept", False)
+  monkeypatch.setenv(allocator.ENVIRONMENT_VARIABLE, "0")
+  assert training_process.training_runner() is None
+  monkeypatch.setenv(allocator.ENVIRONMENT_VARIABLE, "1")
+  monkeypatch.setenv("JAX_PLATFORMS", "cuda")
+  assert training_process.training_runner() is None
+
+
+def test_only_the_trainings_run_in_the_child_and_they_train_the_same_nerfs(
+    tiny_scene, random_model, tmp_path, child_keeps_freed_memory):
+  scene_dir, _ = tiny_scene
+  settings = settings_of(edit_bindings(scene_dir, random_model))
+  in_child = []
+
+  def run_training(stage, context):
+    in_child.append(stage.name)
+    return training_process.run_in_training_process(stage, context)
+
+  lines = []
+  stages.run_edit(tmp_path / "child", settings, until="finetune", progress=False,
+                  log=lines.append, run_training=run_training)
+  stages.run_edit(tmp_path / "here", settings, until="finetune", progress=False,
+                  log=lambda line: None)
+  assert in_child == ["original", "finetune"]
+  assert any(re.search(r"\] original: 20 steps .* on \d+ views", line) for line in lines), lines
+  for run in ("original", "edited"):
+    child, child_metadata = checkpoints.read(tmp_path / "child" / run)
+    here, here_metadata = checkpoints.read(tmp_path / "here" / run)
+    assert child_metadata["step"] == here_metadata["step"] > 0
+    for a, b in zip(jax.tree.leaves(child), jax.tree.leaves(here)):
+      assert np.array_equal(np.asarray(a), np.asarray(b)), run
+
+
+def test_bad_input_found_in_the_child_is_raised_in_the_parent_naming_the_field(
+    tiny_scene, random_model, tmp_path, child_keeps_freed_memory):
+  scene_dir, _ = tiny_scene
+  (tmp_path / "earlier").mkdir()
+  settings = settings_of(edit_bindings(
+      scene_dir, random_model, **{"EditConfig.replay": repr(str(tmp_path / "earlier"))}))
+  with pytest.raises(InputError, match="schedule") as error:
+    stages.run_edit(tmp_path / "edit", settings, until="original", progress=False,
+                    log=lambda line: None,
+                    run_training=training_process.run_in_training_process)
+  assert error.value.field == "EditConfig.replay"
+
+
+class Edit:
+  """`signerf edit` in a process of its own (and process group), its stderr read as it comes;
+  the original NeRF trains far more steps than run, so only a signal ends it."""
+
+  def __init__(self, scene_dir: Path, model: Path, edit_dir: Path):
+    gin_params = edit_bindings(scene_dir, model, **{
+        "original/TrainConfig.steps": "100000",
+        "original/TrainConfig.checkpoint_every_seconds": "1e6"})
+    self.process = subprocess.Popen(
+        SIGNERF + ["edit", "--edit", str(edit_dir)]
+        + [argument for binding in gin_params for argument in ("--gin_param", binding)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", allocator.ENVIRONMENT_VARIABLE: "1"})
+    self.stderr = ""
+    self._reader = threading.Thread(target=self._read, daemon=True)
+    self._reader.start()
+
+  def _read(self) -> None:
+    while chunk := self.process.stderr.read1(4096):
+      self.stderr += chunk.decode(errors="replace")
+
+  def wait_for_step(self, step: int) -> int:
+    deadline = time.monotonic() + PROGRESS_TIMEOUT
+    while time.monotonic() < deadline:
+      shown = [int(count) for count in PROGRESS.findall(self.stderr)]
+      if shown and shown[-1] >= step:
+        return shown[-1]
+      assert self.process.poll() is None, f"signerf edit ended early:\n{self.stderr}"
+      time.sleep(0.1)
+    os.killpg(self.process.pid, signal.SIGKILL)
+    pytest.fail(f"no progress past step {step} in {PROGRESS_TIMEOUT:.0f} s:\n{self.stderr}")
+
+  def stop(self, send) -> tuple[int, str]:
+    send()
+    try:
+      code = self.process.wait(timeout=EXIT_TIMEOUT)
+    except subprocess.TimeoutExpired:
+      os.killpg(self.process.pid, signal.SIGKILL)
+      pytest.fail(f"signerf edit did not stop within {EXIT_TIMEOUT:.0f} s:\n{self.stderr}")
+    self._reader.join(timeout=10)
+    return code, self.stderr
+
+
+@pytest.mark.parametrize("signum, to_group, exit_code", [
+    (signal.SIGINT, True, 130),  # Ctrl-C: the terminal signals the parent and the child.
+    (signal.SIGTERM, False, 143),  # `kill`: the parent alone, which passes it on.
+    (signal.SIGINT, False, 130),
+], ids=["ctrl_c", "sigterm_to_the_parent", "sigint_to_the_parent"])
+def test_a_signal_checkpoints_the_childs_training_and_stops_the_edit_in_one_line(
+    tiny_scene, random_model, tmp_path, signum, to_group, exit_code):
+  scene_dir, _ = tiny_scene
+  edit = Edit(scene_dir, random_model, tmp_path / "edit")
+  shown = edit.wait_for_step(3)
+  pid = edit.process.pid
+  code, stderr = edit.stop(lambda: os.killpg(pid, signum) if to_group else os.kill(pid, signum))
+  assert code == exit_code, stderr
+  assert "Traceback" not in stderr
+  reported = INTERRUPTED.search(stderr)
+  assert reported, stderr
+  step = int(reported.group(1))
+  assert step >= shown
+  assert Path(reported.group(2)) == tmp_path / "edit" / "original"
+  _, metadata = checkpoints.read(tmp_path / "edit" / "original")
+  assert metadata["step"] == step
+  assert EditDirectory(tmp_path / "edit").record("original") is None
