@@ -61,6 +61,12 @@ def test_the_commands_that_train_a_nerf_keep_freed_memory(monkeypatch, tmp_path)
   assert cli.main(["preview", "--run", str(tmp_path / "missing"), "--edit",
                    str(tmp_path / "edit")]) == 2
   assert calls == [True]  # The diffusion sampler runs slower keeping freed memory.
+  # An edit's commands train in a child process that keeps it (editing.commands.training_process).
+  for command in (["edit", "--edit", "E"], ["demo"], ["finetune", "--edit", "E"],
+                  ["eval", "--edit", "E"], ["preview", "--edit", "E"]):
+    assert not cli.keeps_freed_memory(cli.build_parser(command).parse_args(command)), command
+  for command in (["eval", "--run", "R"], ["render", "--run", "R"], ["view", "--run", "R"]):
+    assert cli.keeps_freed_memory(cli.build_parser(command).parse_args(command)), command
 
 
 @pytest.fixture

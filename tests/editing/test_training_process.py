@@ -183,3 +183,18 @@ def test_a_signal_checkpoints_the_childs_training_and_stops_the_edit_in_one_line
   _, metadata = checkpoints.read(tmp_path / "edit" / "original")
   assert metadata["step"] == step
   assert EditDirectory(tmp_path / "edit").record("original") is None
+
+
+def test_a_child_killed_without_a_word_stops_the_edit_naming_the_signal(tiny_scene, random_model,
+                                                                       tmp_path):
+  scene_dir, _ = tiny_scene
+  edit = Edit(scene_dir, random_model, tmp_path / "edit")
+  edit.wait_for_step(3)
+  children = subprocess.run(["pgrep", "-P", str(edit.process.pid), "-f", "spawn_main"],
+                            capture_output=True, text=True, check=True).stdout.split()
+  assert len(children) == 1, children
+  code, stderr = edit.stop(lambda: os.kill(int(children[0]), signal.SIGKILL))
+  assert code == 1, stderr
+  assert ("the original stage's training process was killed by SIGKILL before it finished; run "
+          "the same command to resume") in stderr
+  assert EditDirectory(tmp_path / "edit").record("original") is None

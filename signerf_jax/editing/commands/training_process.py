@@ -22,7 +22,9 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from signerf_jax import allocator, ownership, training_loop
+import jax
+
+from signerf_jax import allocator, cli, ownership, training_loop
 from signerf_jax.editing import stages
 from signerf_jax.editing.project import EditDirectory
 from signerf_jax.errors import InputError
@@ -35,7 +37,6 @@ def training_runner() -> stages.RunTraining | None:
   the trainings run in this process."""
   if allocator.keeps_freed_memory() or not allocator.can_keep_freed_memory():
     return None
-  import jax  # pylint: disable=g-import-not-at-top
   return run_in_training_process if jax.process_count() == 1 else None
 
 
@@ -56,11 +57,15 @@ def run_in_training_process(stage: stages.Stage, context: stages.EditContext) ->
       args=(sender, stage.name, str(context.directory.root), context.settings,
             dict(context.keys), context.stages_to_run, context.progress))
   child.start()
-  sender.close()  # The child holds the only writing end: its exit ends `recv`.
+  sender.close()  # The child holds the only writing end: once it has ended, `recv` returns.
   stopped_by = _wait(child)
   ownership.refresh(context.directory.root)  # What the child wrote is the edit's.
-  outcome = receiver.recv() if receiver.poll() else ("ended", child.exitcode)
-  receiver.close()
+  try:
+    outcome = receiver.recv()
+  except EOFError:  # It ended without a word: killed (out of memory?), or Python failed.
+    outcome = ("ended", child.exitcode)
+  finally:
+    receiver.close()
   context.forget_nerf(stage.trains_nerf)  # The child trained it again.
   return _result(stage, outcome, stopped_by)
 
@@ -95,8 +100,11 @@ def _result(stage: stages.Stage, outcome: tuple[Any, ...], stopped_by: BaseExcep
     raise training_loop.STOP_SIGNALS[details[0]]()
   if kind == "failed":
     raise RuntimeError(f"the {stage.name} stage's training process failed:\n{details[0]}")
-  raise RuntimeError(f"the {stage.name} stage's training process ended with exit code "
-                     f"{details[0]} before it finished")
+  code = details[0]
+  how = (f"was killed by {signal.Signals(-code).name}" if code is not None and code < 0 else
+         f"ended with exit code {code}")
+  raise RuntimeError(f"the {stage.name} stage's training process {how} before it finished; "
+                     "run the same command to resume from its last checkpoint")
 
 
 def _run_child(sender, stage_name: str, directory: str, settings, keys, stages_to_run,
@@ -104,8 +112,7 @@ def _run_child(sender, stage_name: str, directory: str, settings, keys, stages_t
   """The child: keeps freed memory, runs the stage and sends ("done", summary), or what stopped
   it: ("interrupted", step, signum, where, saved), ("input_error", problem, path, field),
   ("signal", signum) or ("failed", traceback)."""
-  allocator.keep_freed_memory()  # Before JAX starts its threads.
-  from signerf_jax import cli  # pylint: disable=g-import-not-at-top  (imports JAX)
+  allocator.keep_freed_memory()  # Before JAX starts its backend, and so its threads.
   signal.signal(signal.SIGTERM, cli.raise_terminated)
   try:
     cli.use_compilation_cache()
