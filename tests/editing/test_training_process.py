@@ -9,9 +9,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import gin
@@ -25,12 +22,10 @@ from signerf_jax.editing.commands import training_process
 from signerf_jax.editing.project import EditDirectory
 from signerf_jax.errors import InputError
 
+from streamed_process import StreamedProcess
+
 pytestmark = pytest.mark.slow
 
-SIGNERF = [sys.executable, "-m", "signerf_jax.cli"]
-PROGRESS_TIMEOUT = 300.0  # The child's first step compiles (tens of seconds on busy cores).
-EXIT_TIMEOUT = 120.0
-PROGRESS = re.compile(r"(\d+)/100000 \[")  # tqdm's bar of the original NeRF's training.
 INTERRUPTED = re.compile(r"^signerf edit: interrupted at step (\d+); checkpoint saved in (.+); "
                          r"run the same command to resume$", re.MULTILINE)
 
@@ -118,47 +113,16 @@ def test_bad_input_found_in_the_child_is_raised_in_the_parent_naming_the_field(
   assert error.value.field == "EditConfig.replay"
 
 
-class Edit:
-  """`signerf edit` in a process of its own (and process group), its stderr read as it comes;
-  the original NeRF trains far more steps than run, so only a signal ends it."""
-
-  def __init__(self, scene_dir: Path, model: Path, edit_dir: Path):
-    gin_params = edit_bindings(scene_dir, model, **{
-        "original/TrainConfig.steps": "100000",
-        "original/TrainConfig.checkpoint_every_seconds": "1e6"})
-    self.process = subprocess.Popen(
-        SIGNERF + ["edit", "--edit", str(edit_dir)]
-        + [argument for binding in gin_params for argument in ("--gin_param", binding)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", allocator.ENVIRONMENT_VARIABLE: "1"})
-    self.stderr = ""
-    self._reader = threading.Thread(target=self._read, daemon=True)
-    self._reader.start()
-
-  def _read(self) -> None:
-    while chunk := self.process.stderr.read1(4096):
-      self.stderr += chunk.decode(errors="replace")
-
-  def wait_for_step(self, step: int) -> int:
-    deadline = time.monotonic() + PROGRESS_TIMEOUT
-    while time.monotonic() < deadline:
-      shown = [int(count) for count in PROGRESS.findall(self.stderr)]
-      if shown and shown[-1] >= step:
-        return shown[-1]
-      assert self.process.poll() is None, f"signerf edit ended early:\n{self.stderr}"
-      time.sleep(0.1)
-    os.killpg(self.process.pid, signal.SIGKILL)
-    pytest.fail(f"no progress past step {step} in {PROGRESS_TIMEOUT:.0f} s:\n{self.stderr}")
-
-  def stop(self, send) -> tuple[int, str]:
-    send()
-    try:
-      code = self.process.wait(timeout=EXIT_TIMEOUT)
-    except subprocess.TimeoutExpired:
-      os.killpg(self.process.pid, signal.SIGKILL)
-      pytest.fail(f"signerf edit did not stop within {EXIT_TIMEOUT:.0f} s:\n{self.stderr}")
-    self._reader.join(timeout=10)
-    return code, self.stderr
+def edit_process(scene_dir: Path, model: Path, edit_dir: Path) -> StreamedProcess:
+  """`signerf edit` in a process of its own whose child keeps freed memory; the original NeRF
+  trains far more steps than run, so only a signal ends it."""
+  gin_params = edit_bindings(scene_dir, model, **{
+      "original/TrainConfig.steps": "100000",
+      "original/TrainConfig.checkpoint_every_seconds": "1e6"})
+  return StreamedProcess(["edit", "--edit", str(edit_dir)]
+                         + [argument for binding in gin_params
+                            for argument in ("--gin_param", binding)],
+                         {allocator.ENVIRONMENT_VARIABLE: "1"})
 
 
 @pytest.mark.parametrize("signum, to_group, exit_code", [
@@ -169,7 +133,7 @@ class Edit:
 def test_a_signal_checkpoints_the_childs_training_and_stops_the_edit_in_one_line(
     tiny_scene, random_model, tmp_path, signum, to_group, exit_code):
   scene_dir, _ = tiny_scene
-  edit = Edit(scene_dir, random_model, tmp_path / "edit")
+  edit = edit_process(scene_dir, random_model, tmp_path / "edit")
   shown = edit.wait_for_step(3)
   pid = edit.process.pid
   code, stderr = edit.stop(lambda: os.killpg(pid, signum) if to_group else os.kill(pid, signum))
@@ -188,7 +152,7 @@ def test_a_signal_checkpoints_the_childs_training_and_stops_the_edit_in_one_line
 def test_a_child_killed_without_a_word_stops_the_edit_naming_the_signal(tiny_scene, random_model,
                                                                        tmp_path):
   scene_dir, _ = tiny_scene
-  edit = Edit(scene_dir, random_model, tmp_path / "edit")
+  edit = edit_process(scene_dir, random_model, tmp_path / "edit")
   edit.wait_for_step(3)
   children = subprocess.run(["pgrep", "-P", str(edit.process.pid), "-f", "spawn_main"],
                             capture_output=True, text=True, check=True).stdout.split()
