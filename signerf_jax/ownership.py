@@ -280,6 +280,11 @@ def _claim_of(path: Path) -> tuple[_Claim, str] | None:
     return claim, resolved.relative_to(claim.root).as_posix()
 
 
+def _append(claim: _Claim, record: list[str]) -> None:
+  """Adds a record to the claim's log, on disk before the caller goes on."""
+  written_log.append(claim.log_descriptor, record)
+
+
 def check_replaceable(path: str | os.PathLike) -> None:
   """Raises unless the project may replace or delete `path`: it does not exist, it lies outside
   every claimed directory, or it is a file this project's record says it wrote.
@@ -312,7 +317,7 @@ def prepare_write(path: str | os.PathLike) -> Path:
   if found is not None:
     claim, relative = found
     with _mutex:
-      written_log.append(claim.log_descriptor, ["w", relative, str(Path(relative).with_name(temporary.name).as_posix())])
+      _append(claim, ["w", relative, str(Path(relative).with_name(temporary.name).as_posix())])
       claim.written.add(relative)
   return temporary
 
@@ -323,7 +328,7 @@ def record_written(path: str | os.PathLike) -> None:
   if found is not None:
     claim, relative = found
     with _mutex:
-      written_log.append(claim.log_descriptor, ["w", relative])
+      _append(claim, ["w", relative])
       claim.written.add(relative)
 
 
@@ -337,7 +342,7 @@ def remove_file(path: str | os.PathLike) -> None:
     path.unlink()
   if found is not None and found[1] in found[0].written:
     with _mutex:
-      written_log.append(found[0].log_descriptor, ["r", found[1]])
+      _append(found[0], ["r", found[1]])
       found[0].written.discard(found[1])
 
 
@@ -370,7 +375,7 @@ def remove_written(path: str | os.PathLike) -> int:
     for relative in chosen:
       with contextlib.suppress(FileNotFoundError):
         (claim.root / relative).unlink()
-      written_log.append(claim.log_descriptor, ["r", relative])
+      _append(claim, ["r", relative])
       claim.written.discard(relative)
       folders.update(parent for parent in Path(relative).parents
                      if parent.as_posix().startswith(prefix) and parent != Path("."))
