@@ -166,14 +166,60 @@ def render_chunks(model: nerf_model.NerfModel, variables, rays: camera.Rays,
   variables = render_state.on_device(model, variables)
 
   def render(start: int) -> dict[str, np.ndarray]:
-    stop = min(start + chunk_size, count)
-    chunk = jax.tree.map(lambda a: np.concatenate(
-        [a[start:stop], np.repeat(a[stop - 1:stop], start + chunk_size - stop, 0)]), rays)
+    chunk, size = _padded_chunk(rays, start, chunk_size)
     outputs = jax.device_get(_render_chunk(model, variables, chunk, near_distance, box,
                                            march_box, march_steps, settings, skipping))
-    return {name: value[:stop - start] for name, value in outputs.items()}
+    return {name: value[:size] for name, value in outputs.items()}
 
   yield from _in_flight(render, range(0, count, chunk_size))
+
+
+def _padded_chunk(rays: camera.Rays, start: int, chunk_size: int) -> tuple[camera.Rays, int]:
+  """Host rays [R] from `start`, `chunk_size` of them (padded by repeating the last ray), and
+  how many are real."""
+  stop = min(start + chunk_size, rays.shape[0])
+  return jax.tree.map(lambda a: np.concatenate(
+      [a[start:stop], np.repeat(a[stop - 1:stop], start + chunk_size - stop, 0)]), rays), (
+          stop - start)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _crosses_region(model: nerf_model.NerfModel, chunk: camera.Rays):
+  return nerf_model.crosses_region(model, chunk)
+
+
+def _crossing_rays(model: nerf_model.NerfModel, rays: camera.Rays) -> np.ndarray:
+  """[R] bool: which of the flat rays [R] cross `model`'s edit region."""
+  rays = jax.device_get(rays)
+  pieces = []
+  for start in range(0, rays.shape[0], DEFAULT_CHUNK_SIZE):
+    chunk, size = _padded_chunk(rays, start, DEFAULT_CHUNK_SIZE)
+    pieces.append(np.asarray(_crosses_region(model, chunk))[:size])
+  return np.concatenate(pieces)
+
+
+def _render_edited_rays(model: nerf_model.NerfModel, variables, rays: camera.Rays,
+                        chunk_size: int, near_distance: float, selection_box,
+                        settings: front_to_back.RenderSettings) -> dict[str, np.ndarray]:
+  """`render_rays_chunked` of an edit region's model on flat rays [R]: the rays that miss the
+  region rendered by its original (the program the original's own renders use, so compiled
+  once for both), those that cross it with every sample. What `render_trained.render_rays`
+  does within one chunk's program, which compiles the original's renderer into it again."""
+  crossing = _crossing_rays(model, rays)
+  parts = ((~crossing, model.original, variables["original"], settings),
+           (crossing, model, variables, None))
+  outputs: dict[str, np.ndarray] = {}
+  for selected, part_model, part_variables, part_settings in parts:
+    if not selected.any():
+      continue
+    subset = jax.tree.map(lambda array, selected=selected: np.asarray(array)[selected], rays)
+    rendered = assemble(render_chunks(part_model, part_variables, subset, chunk_size,
+                                      near_distance, selection_box, part_settings),
+                        subset.shape)
+    for name, value in rendered.items():
+      outputs.setdefault(name, np.zeros(rays.shape + value.shape[1:], value.dtype))[
+          selected] = value
+  return outputs
 
 
 def _in_flight(render, starts) -> Iterator[dict[str, np.ndarray]]:
@@ -212,7 +258,12 @@ def render_rays_chunked(model: nerf_model.NerfModel, variables, rays: camera.Ray
     numpy arrays: rgb [..., 3], accumulation, depth, median_depth, distance, near_weight,
     selection_weight [...].
   """
-  return assemble(render_chunks(model, variables, rays.reshape(-1), chunk_size, near_distance,
+  flat = rays.reshape(-1)
+  if model.edit_region is not None and settings is not None and flat.shape[0]:
+    outputs = _render_edited_rays(model, variables, flat, chunk_size, near_distance,
+                                  selection_box, settings)
+    return {name: value.reshape(rays.shape + value.shape[1:]) for name, value in outputs.items()}
+  return assemble(render_chunks(model, variables, flat, chunk_size, near_distance,
                                 selection_box, settings), rays.shape)
 
 
@@ -279,46 +330,6 @@ def render_cameras(model: nerf_model.NerfModel, variables, cameras: camera.Camer
     for name in IMAGE_OUTPUTS:
       outputs[name][pixels] += rendered[name] / len(positions)
   return outputs
-
-
-def orbit_cameras(model: nerf_model.NerfModel, reference: camera.Cameras, num_frames: int
-                  ) -> camera.Cameras:
-  """A camera path through the scene, with the intrinsics of the first reference camera.
-
-  Bounded and unbounded scenes: one turn around the bounds' centre at the reference cameras'
-  mean distance and height, about the mean up vector. Forward-facing scenes: a small circle in
-  the mean camera's image plane, looking at the scene centre.
-  """
-  positions = np.asarray(reference.positions)
-  centre = np.mean(np.asarray(model.scene.bounds), axis=0)
-  up = np.mean(np.asarray(reference.camera_to_world)[:, :, 1], axis=0)
-  up = up / np.linalg.norm(up)
-  angles = np.linspace(0.0, 2.0 * np.pi, num_frames, endpoint=False)
-  if model.scene.kind == "forward_facing":
-    mean_pose = np.asarray(reference.camera_to_world).mean(axis=0)
-    right, camera_up = mean_pose[:, 0], mean_pose[:, 1]
-    radius = 0.5 * np.std(positions @ right) + 0.5 * np.std(positions @ camera_up)
-    eyes = (positions.mean(axis=0) + radius * (np.cos(angles)[:, None] * right +
-                                               np.sin(angles)[:, None] * camera_up))
-    target = positions.mean(axis=0) - mean_pose[:, 2] * np.linalg.norm(
-        centre - positions.mean(axis=0))
-  else:
-    offsets = positions - centre
-    height = np.mean(offsets @ up)
-    radius = np.mean(np.linalg.norm(offsets - np.outer(offsets @ up, up), axis=-1))
-    first = offsets[0] - (offsets[0] @ up) * up
-    first = first / max(np.linalg.norm(first), 1e-9)
-    second = np.cross(up, first)
-    eyes = centre + height * up + radius * (np.cos(angles)[:, None] * first +
-                                            np.sin(angles)[:, None] * second)
-    target = centre
-  camera_to_world = camera.look_at(eyes.astype(np.float32),
-                                   np.broadcast_to(target, eyes.shape).astype(np.float32),
-                                   up.astype(np.float32))
-  first_camera = reference.take([0])
-  return camera.Cameras.create(np.asarray(camera_to_world), first_camera.fx[0], first_camera.fy[0],
-                               first_camera.cx[0], first_camera.cy[0], width=reference.width,
-                               height=reference.height)
 
 
 class _CodecUnavailable(Exception):

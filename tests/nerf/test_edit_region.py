@@ -20,8 +20,8 @@ from signerf_jax import camera
 from signerf_jax.editing import finetune
 from signerf_jax.editing.config import FinetuneConfig
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import (capacity, edit_region_render, evaluate, render, sampling,
-                              scene_info, train, training_data, training_run, volume)
+from signerf_jax.nerf import (capacity, edit_region_render, evaluate, render, render_trained,
+                              sampling, scene_info, train, training_data, training_run, volume)
 from signerf_jax.nerf import model as nerf_model
 
 BACKGROUND = jnp.array([0.2, 0.4, 0.6])
@@ -344,6 +344,47 @@ def test_the_edited_render_over_the_original_equals_a_full_render(sphere):
                                                      original)
   np.testing.assert_allclose(composed, full, atol=1e-6)
   assert not np.allclose(composed, original, atol=1e-3)  # The region did change something.
+
+
+def test_the_edited_render_over_the_original_skips_the_front_to_back_renderer(sphere,
+                                                                               monkeypatch):
+  # Its rays all cross the region, rendered with every sample either way: compiling the
+  # original's front-to-back renderer for them would be time lost.
+  region_model, region_variables = proposal_region_model(sphere)
+  cameras = sphere.cameras.take([1])
+
+  def front_to_back(*args, **kwargs):
+    raise AssertionError("the front-to-back renderer was traced")
+
+  monkeypatch.setattr(render_trained, "render_rays", front_to_back)
+  render._render_chunk.clear_cache()  # Traced anew, not taken from an earlier test's program.
+  original = np.zeros((1, cameras.height, cameras.width, 3), np.float32)
+  composed = edit_region_render.render_over_original(region_model, region_variables, cameras,
+                                                     original)
+  assert not np.allclose(composed, original)
+
+
+def test_an_edited_render_splits_its_rays_as_one_program_would(sphere, monkeypatch):
+  # render_rays_chunked renders the rays that miss the region with the original's own program
+  # and those that cross it with every sample; render_chunks does both within one program.
+  region_model, region_variables = proposal_region_model(sphere)
+  rays = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + np.asarray(a).shape[2:]),
+                      render.image_rays(sphere.cameras, 1))
+  crossing = np.asarray(nerf_model.crosses_region(region_model, rays))
+  assert crossing.any() and (~crossing).any()
+  box = np.array([[-0.3, -0.3, -0.3], [0.3, 0.3, 0.3]], np.float32)
+  render.render_rays_chunked(region_model.original, region_variables["original"], rays)
+
+  def front_to_back(*args, **kwargs):
+    raise AssertionError("the front-to-back renderer was traced again")
+
+  with monkeypatch.context() as patch:  # The original's program serves the missing rays.
+    patch.setattr(render_trained, "render_rays", front_to_back)
+    split = render.render_rays_chunked(region_model, region_variables, rays, selection_box=box)
+  together = render.assemble(render.render_chunks(region_model, region_variables, rays,
+                                                  selection_box=box), rays.shape)
+  for name in render.IMAGE_OUTPUTS:
+    np.testing.assert_allclose(split[name], together[name], atol=1e-5, err_msg=name)
 
 
 def test_an_edit_region_out_of_view_renders_nothing_again(sphere, monkeypatch):

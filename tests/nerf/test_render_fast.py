@@ -23,7 +23,7 @@ from small_nerf import count_compilations, small_model
 
 BALL_RADIUS = 0.5  # Scene units, centred at the origin (the analytic sphere's).
 # The default settings against the full render: the largest difference of a pixel's colour
-# and opacity (termination 1e-3 plus a colour weight of 1e-2 left black, and the proposal's
+# and opacity (termination 1e-2 plus a colour weight of 1e-2 left black, and the proposal's
 # skipped samples moving the field's samples a little), and of the mean over the pixels.
 TOLERANCE = {"max": 2e-2, "mean": 1e-3}
 # Every shortcut off: the same samples, composited in another order.

@@ -31,7 +31,7 @@ from signerf_jax.editing.stages.context import EditContext, evenly_spaced
 from signerf_jax.editing.stages.inputs import VIEWS_PER_CHUNK
 from signerf_jax.editing.stages.propagation import EditedViews, edited_views
 from signerf_jax.metrics import background
-from signerf_jax.nerf import edit_region_render, render
+from signerf_jax.nerf import camera_paths, edit_region_render, render
 
 BEFORE_AFTER_VIEWS = 4
 # Columns of the independent-edits figure.
@@ -121,7 +121,7 @@ def _figures(context: EditContext, iteration: int, nerfs, before, after) -> list
   files.write_bytes(directory / "sheet.png", sheet_png.read_bytes())
   outputs = [directory / "before_after.png", directory / "sheet.png"]
   if config.video_frames:
-    path = render.orbit_cameras(nerfs[1].model, context.dataset.cameras, config.video_frames)
+    path = camera_paths.orbit_cameras(nerfs[1].model, context.dataset.cameras, config.video_frames)
     original = render.render_cameras(nerfs[0].model, nerfs[0].variables, path)["rgb"]
     edited = edit_region_render.render_over_original(nerfs[1].model, nerfs[1].variables, path,
                                                      original)

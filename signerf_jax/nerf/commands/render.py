@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from signerf_jax import cli, ownership
-from signerf_jax.nerf import evaluate, render
+from signerf_jax.nerf import camera_paths, evaluate, render
 from signerf_jax.nerf.commands import load_recorded_dataset
 from signerf_jax.nerf.commands.evaluate import add_supersampling
 from signerf_jax.validation import PositiveInt, argument_type
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     render.write_renders(out / args.split, dataset.image_names, outputs)
     message = f"{dataset.num_images} {args.split} views in {out / args.split}"
     if args.video:
-      path_cameras = render.orbit_cameras(trained.model, dataset.cameras, args.frames)
+      path_cameras = camera_paths.orbit_cameras(trained.model, dataset.cameras, args.frames)
       frames = render.render_cameras(trained.model, trained.variables, path_cameras,
                                      args.chunk_size, supersampling=args.supersampling)["rgb"]
       message += f", video {render.write_video(out / 'video.mp4', frames)}"
