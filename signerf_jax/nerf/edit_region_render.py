@@ -9,19 +9,11 @@ full render once the original's are there.
 
 from __future__ import annotations
 
-import functools
-
-import jax
 import numpy as np
 
 from signerf_jax import camera
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf import render
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _crossing(model: nerf_model.NerfModel, rays: camera.Rays):
-  return nerf_model.crosses_region(model, rays.reshape(-1)).reshape(rays.shape)
 
 
 def region_pixels(model: nerf_model.NerfModel, cameras: camera.Cameras,
@@ -34,7 +26,8 @@ def region_pixels(model: nerf_model.NerfModel, cameras: camera.Cameras,
   pixels = np.zeros((cameras.num_cameras, cameras.height, cameras.width), bool)
   for position in camera.subpixel_positions(supersampling):
     for index in range(cameras.num_cameras):
-      pixels[index] |= np.asarray(_crossing(model, render.image_rays(cameras, index, position)))
+      rays = render.image_rays(cameras, index, position)
+      pixels[index] |= render.crossing_rays(model, rays.reshape(-1)).reshape(rays.shape)
   return pixels
 
 

@@ -189,8 +189,9 @@ def _crosses_region(model: nerf_model.NerfModel, chunk: camera.Rays):
   return nerf_model.crosses_region(model, chunk)
 
 
-def _crossing_rays(model: nerf_model.NerfModel, rays: camera.Rays) -> np.ndarray:
-  """[R] bool: which of the flat rays [R] cross `model`'s edit region."""
+def crossing_rays(model: nerf_model.NerfModel, rays: camera.Rays) -> np.ndarray:
+  """[R] bool: which of the flat rays [R] cross `model`'s edit region (the only rays an edit
+  region's field changes), DEFAULT_CHUNK_SIZE at a time (one compilation)."""
   rays = jax.device_get(rays)
   pieces = []
   for start in range(0, rays.shape[0], DEFAULT_CHUNK_SIZE):
@@ -206,7 +207,7 @@ def _render_edited_rays(model: nerf_model.NerfModel, variables, rays: camera.Ray
   region rendered by its original (the program the original's own renders use, so compiled
   once for both), those that cross it with every sample. What `render_trained.render_rays`
   does within one chunk's program, which compiles the original's renderer into it again."""
-  crossing = _crossing_rays(model, rays)
+  crossing = crossing_rays(model, rays)
   parts = ((~crossing, model.original, variables["original"], settings),
            (crossing, model, variables, None))
   outputs: dict[str, np.ndarray] = {}
