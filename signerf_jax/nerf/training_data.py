@@ -23,6 +23,7 @@ from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import keypoint_depth
 from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.capacity import Capacity
 
 
 @struct.dataclass
@@ -148,6 +149,15 @@ def sample_rays(key, data: TrainingData, batch_size: int):
   return rays, pixels, jax.tree.map(lambda array: array[choice], data.region.surroundings)
 
 
+def pixels_per_step(capacity: Capacity, per_side: int) -> int:
+  """Pixels a training step samples with `per_side`^2 rays each: rays_per_batch / per_side^2,
+  rounded down to a multiple of `Capacity.sample_groups` so that their rays split into the
+  groups evenly (3 x 3 rays a pixel of 8,192 would be 910 pixels, 8,190 rays, which 8 groups do
+  not split)."""
+  groups = capacity.sample_groups
+  return max(groups, capacity.rays_per_batch // per_side**2 // groups * groups)
+
+
 def step_batch(model: nerf_model.NerfModel, data: TrainingData, ray_key, background_key):
   """A step's batch: `Capacity.pixel_samples`^2 rays through each of rays_per_batch / that many
   random pixels (one ray for an edit region: its surroundings are stored per pixel centre).
@@ -158,7 +168,7 @@ def step_batch(model: nerf_model.NerfModel, data: TrainingData, ray_key, backgro
   """
   per_side = model.capacity.pixel_samples if data.region is None else 1
   rays, (index, row, column), surroundings = sample_rays(
-      ray_key, data, model.capacity.rays_per_batch // per_side**2)
+      ray_key, data, pixels_per_step(model.capacity, per_side))
   target = data.images[index, row, column]
   background = None
   if data.alphas is not None and model.background is not None:

@@ -16,6 +16,15 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.mark.parametrize("per_side", [1, 2, 3])
+def test_a_steps_rays_split_into_the_sample_groups_whatever_the_rays_a_pixel(sphere, per_side):
+  capacity = dataclasses.replace(small_model(sphere).capacity, rays_per_batch=8192,
+                                 sample_groups=8)
+  pixels = training_data.pixels_per_step(capacity, per_side)
+  assert pixels * per_side**2 % 8 == 0
+  assert 8192 - 8 * per_side**2 < pixels * per_side**2 <= 8192  # The fewest rays dropped.
+
+
+@pytest.mark.parametrize("per_side", [1, 2, 3])
 def test_each_pixels_rays_cross_that_pixel_and_share_its_target_and_background(sphere, per_side):
   alphas = np.ones(sphere.images.shape[:3], np.float32)
   alphas[:, :, :5] = 0.0  # A transparent strip: its targets take the random background.
