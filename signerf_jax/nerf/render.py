@@ -207,6 +207,7 @@ def _render_edited_rays(model: nerf_model.NerfModel, variables, rays: camera.Ray
   region rendered by its original (the program the original's own renders use, so compiled
   once for both), those that cross it with every sample. What `render_trained.render_rays`
   does within one chunk's program, which compiles the original's renderer into it again."""
+  rays = jax.device_get(rays)
   crossing = crossing_rays(model, rays)
   parts = ((~crossing, model.original, variables["original"], settings),
            (crossing, model, variables, None))
@@ -214,7 +215,7 @@ def _render_edited_rays(model: nerf_model.NerfModel, variables, rays: camera.Ray
   for selected, part_model, part_variables, part_settings in parts:
     if not selected.any():
       continue
-    subset = jax.tree.map(lambda array, selected=selected: np.asarray(array)[selected], rays)
+    subset = jax.tree.map(lambda array, selected=selected: array[selected], rays)
     rendered = assemble(render_chunks(part_model, part_variables, subset, chunk_size,
                                       near_distance, selection_box, part_settings),
                         subset.shape)
