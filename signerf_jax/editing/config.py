@@ -35,7 +35,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings, Matcher
 from signerf_jax.nerf.capacity import CapacityRules
-from signerf_jax.nerf.train import TrainConfig
+from signerf_jax.nerf.train import TrainConfig, distortion_weight
 from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, OpenUnitInterval,
                                     PositiveFloat, PositiveInt, Range, UnitInterval, Vector3)
 
@@ -378,17 +378,18 @@ def as_json(config: Any) -> dict[str, Any]:
           for field in dataclasses.fields(config)}
 
 
-# TrainConfig fields that came after edits were first keyed (keypoint depth): at
-# their defaults they stay out of a training's key, so earlier edits' NeRFs stay current.
-LATER_TRAINING_FIELDS = ("keypoint_depth_weight", "keypoint_rays")
+# TrainConfig fields added after edits were first keyed stay out of a training's key at their
+# defaults, the distortion weight left to the capture is keyed as it was: earlier NeRFs stay.
+LATER_TRAINING_FIELDS = ("keypoint_depth_weight", "keypoint_rays", "photo_consistency_weight",
+                         "photo_consistency_neighbours", "photo_consistency_truncation")
 
 
 def training_key(config: TrainConfig) -> dict[str, Any]:
-  """A NeRF training's settings for its stage key (`as_json` less `LATER_TRAINING_FIELDS` at
-  their defaults)."""
+  """A NeRF training's settings for its stage key (`as_json`, with the fields above)."""
   default = TrainConfig()
-  return {name: value for name, value in as_json(config).items()
-          if not (name in LATER_TRAINING_FIELDS and value == getattr(default, name))}
+  key = {name: value for name, value in as_json(config).items()
+         if not (name in LATER_TRAINING_FIELDS and value == getattr(default, name))}
+  return key | {"distortion_loss_weight": distortion_weight(config)}
 
 
 def _jsonable(value):

@@ -29,7 +29,7 @@ from jax.sharding import Mesh
 
 from signerf_jax import parallel, validation
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import keypoint_depth, losses, training_data
+from signerf_jax.nerf import keypoint_depth, losses, photo_consistency, training_data
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.encoding import level_weights_at
 from signerf_jax.nerf.training_data import TrainingData
@@ -54,7 +54,10 @@ class TrainConfig(validation.CheckedFields):
       Pruning an untrained field removes cells at random, and a pruned cell gets no samples, so
       no gradient to become dense where the scene needs it.
     interlevel_loss_weight: weight of the proposal loss.
-    distortion_loss_weight: weight of mip-NeRF 360's distortion loss (crisper surfaces).
+    distortion_loss_weight: weight of mip-NeRF 360's distortion loss (crisper surfaces). None:
+      the capture chooses (`training_run.with_capture_choices`): SPARSE_DISTORTION_LOSS_WEIGHT
+      for a sparse capture of a scene with a background, DISTORTION_LOSS_WEIGHT otherwise
+      (`distortion_weight`).
     opacity_entropy_weight: weight of a prior pushing each ray's opacity towards 0 or 1
       (`losses.opacity_entropy`; for a model with an edit region, the opacity of the trained
       field inside the region): against the haze a field fitted to views that disagree becomes.
@@ -64,6 +67,14 @@ class TrainConfig(validation.CheckedFields):
       the capture chooses (`training_run.with_capture_choices`): SPARSE_KEYPOINT_DEPTH_WEIGHT
       for a sparse capture of a scene with a background, 0 otherwise.
     keypoint_rays: keypoint rays each step.
+    photo_consistency_weight: weight of the colour disagreement of each training ray's samples
+      with its neighbouring training views (`photo_consistency`; models without an edit
+      region): it moves weight from floaters to where the other photos agree. None: the
+      capture chooses (`training_run.with_capture_choices`): SPARSE_PHOTO_CONSISTENCY_WEIGHT
+      for a sparse capture of a scene with a background, 0 otherwise.
+    photo_consistency_neighbours: the nearest training views (by camera position) compared.
+    photo_consistency_truncation: the largest disagreement a sample counts (mean absolute
+      RGB difference in [0, 1]): occlusion and reflections cost no more.
     checkpoint_every_steps, checkpoint_every_seconds: checkpoint when either is reached.
     seed: PRNG seed of the run.
   """
@@ -78,18 +89,30 @@ class TrainConfig(validation.CheckedFields):
   occupancy_update_every: PositiveInt = 16
   occupancy_warmup_steps: NonNegativeInt = 32
   interlevel_loss_weight: NonNegativeFloat = 1.0
-  distortion_loss_weight: NonNegativeFloat = 0.002
+  distortion_loss_weight: NonNegativeFloat | None = None
   opacity_entropy_weight: NonNegativeFloat = 0.0
   keypoint_depth_weight: NonNegativeFloat | None = None
   keypoint_rays: PositiveInt = 256
+  photo_consistency_weight: NonNegativeFloat | None = None
+  photo_consistency_neighbours: PositiveInt = 4
+  photo_consistency_truncation: PositiveFloat = 0.25
   checkpoint_every_steps: PositiveInt = 1000
   checkpoint_every_seconds: PositiveFloat = 120.0
   seed: NonNegativeInt = 0
 
 
+# The distortion loss's weight (`TrainConfig.distortion_loss_weight`), and that of sparse
+# captures with a background: with photo consistency, which already moves each ray's weight to
+# where the photos agree, a quarter of it gave stitch with 13 views 0.6 dB more held-out and as
+# consistent a depth (docs/performance.md).
+DISTORTION_LOSS_WEIGHT = 0.002
+SPARSE_DISTORTION_LOSS_WEIGHT = 0.0005
 # The keypoint depth weight of sparse captures (`TrainConfig.keypoint_depth_weight`): stitch with
 # 13 views gained ~3 dB held-out with it (docs/performance.md).
 SPARSE_KEYPOINT_DEPTH_WEIGHT = 1.0
+# The photo-consistency weight of sparse captures (`TrainConfig.photo_consistency_weight`):
+# stitch with 13 views gained ~0.7 dB held-out with it (docs/performance.md).
+SPARSE_PHOTO_CONSISTENCY_WEIGHT = 0.1
 
 
 @struct.dataclass
@@ -100,6 +123,14 @@ class TrainState:
   variables: dict[str, Any]
   optimizer_state: optax.OptState  # `make_optimizer`'s
   key: jax.Array  # the run's base key; step keys are fold_in(key, step)
+
+
+def distortion_weight(config: TrainConfig) -> float:
+  """`config.distortion_loss_weight`, or DISTORTION_LOSS_WEIGHT where the capture has not
+  chosen it (a config `training_run.with_capture_choices` did not see)."""
+  if config.distortion_loss_weight is None:
+    return DISTORTION_LOSS_WEIGHT
+  return config.distortion_loss_weight
 
 
 def learning_rate(config: TrainConfig, step, progress):
@@ -241,7 +272,7 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     pixel_rgb = outputs["rgb"].reshape(-1, rays_per_pixel, 3).mean(axis=1)
     pixel_complete = outputs["ray_complete"].reshape(-1, rays_per_pixel).all(axis=1)
     mse = losses.weighted_mse(pixel_rgb, target, pixel_weight * pixel_complete)
-    loss = mse + config.distortion_loss_weight * losses.distortion_loss(
+    loss = mse + distortion_weight(config) * losses.distortion_loss(
         aux["edges"], aux["weights"], model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
@@ -249,6 +280,7 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     statistics = {"mse": mse, "samples": aux["samples_evaluated"],
                   "complete_fraction": jnp.mean(outputs["ray_complete"])}
     loss = add_opacity_entropy(config, loss, aux["weights"], ray_weights, statistics)
+    loss = add_photo_consistency(config, data, loss, aux, rays, seen, ray_weights, statistics)
     if keypoint_depth_error is not None:
       statistics["keypoint_depth"] = keypoint_depth_error
       loss = loss + config.keypoint_depth_weight * keypoint_depth_error
@@ -296,6 +328,21 @@ def add_opacity_entropy(config: TrainConfig, loss, weights, ray_weights, statist
     return loss
   statistics["opacity_entropy"] = losses.opacity_entropy(weights, ray_weights)
   return loss + config.opacity_entropy_weight * statistics["opacity_entropy"]
+
+
+def add_photo_consistency(config: TrainConfig, data: TrainingData, loss, aux, rays, seen: int,
+                          ray_weights, statistics):
+  """loss + the samples' colour disagreement with the neighbouring views
+  (`TrainConfig.photo_consistency_weight`), recorded in statistics, when it is on (and the
+  model has no edit region). aux: `render_rays`' of the batch's first `seen` `rays` (the
+  pixels'; keypoint rays follow them); ray_weights: [seen]."""
+  if (not config.photo_consistency_weight or data.neighbour_views is None
+      or data.region is not None):
+    return loss
+  statistics["photo_consistency"] = photo_consistency.sample_disagreement(
+      aux["edges"], aux["weights"], jax.tree.map(lambda array: array[:seen], rays), data.images,
+      data.cameras, data.neighbour_views, ray_weights, config.photo_consistency_truncation)
+  return loss + config.photo_consistency_weight * statistics["photo_consistency"]
 
 
 def occupancy_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainState

@@ -51,6 +51,8 @@ class TrainingData:
     alphas: None or [N, H, W] float32 opacity of RGBA images (`Dataset.alphas`).
     region: for a model with an edit region, the only pixels a step samples (`RegionRays`).
     keypoints: depths of triangulated keypoints (`keypoint_depth.KeypointDepths`), or None.
+    neighbour_views: None or [N, K] int32 the views each view's samples are compared with
+      (`photo_consistency.neighbour_views`).
   """
 
   images: jax.Array
@@ -59,6 +61,7 @@ class TrainingData:
   alphas: jax.Array | None = None
   region: RegionRays | None = None
   keypoints: keypoint_depth.KeypointDepths | None = None
+  neighbour_views: jax.Array | None = None
 
   @classmethod
   def from_dataset(cls, dataset: Dataset, pixel_weights=None) -> "TrainingData":

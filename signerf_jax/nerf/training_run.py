@@ -28,11 +28,13 @@ from jax.sharding import Mesh
 from signerf_jax import checkpoints, files, ownership, parallel, training_loop
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import keypoint_depth
+from signerf_jax.nerf import keypoint_depth, photo_consistency
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import SPARSE_VIEWS, Capacity, CapacityRules, derive_capacity
 from signerf_jax.nerf.scene_info import SceneInfo
-from signerf_jax.nerf.train import (SPARSE_KEYPOINT_DEPTH_WEIGHT, TrainConfig, TrainState,
+from signerf_jax.nerf.train import (DISTORTION_LOSS_WEIGHT, SPARSE_DISTORTION_LOSS_WEIGHT,
+                                    SPARSE_KEYPOINT_DEPTH_WEIGHT,
+                                    SPARSE_PHOTO_CONSISTENCY_WEIGHT, TrainConfig, TrainState,
                                     init_state, make_train_step, upgrade_state_dict)
 from signerf_jax.nerf.training_data import TrainingData, with_region_rays
 
@@ -275,18 +277,24 @@ def build_model(dataset: Dataset, capacity: Capacity | None = None,
 
 def with_capture_choices(config: TrainConfig, dataset: Dataset, model: nerf_model.NerfModel
                          ) -> TrainConfig:
-  """`config` with the settings it leaves to the capture (None) chosen: keypoint depth for a
-  sparse capture (fewer than `SPARSE_VIEWS` training views) of a scene whose background the
-  field models (360-degree and forward-facing captures). An object on a constant background
-  is left without: its silhouettes' corners against the background are keypoints of no 3D
-  point, and with them lego with 12 views lost 1.9 dB (docs/performance.md). A model with an
-  edit region trains the region alone, on its own rays."""
-  if config.keypoint_depth_weight is not None:
-    return config
+  """`config` with the settings it leaves to the capture (None) chosen: keypoint depth, photo
+  consistency and a quarter of the distortion loss for a sparse capture (fewer than
+  `SPARSE_VIEWS` training views) of a scene whose background the field models (360-degree and
+  forward-facing captures); otherwise neither prior and the usual distortion loss.
+  An object on a constant background is left without either: its silhouettes' corners against
+  the background are keypoints of no 3D point (with them lego with 12 views lost 1.9 dB), and
+  its occupancy-grid samples (up to `Capacity.march_steps` a ray) made each step four times as
+  slow to compare (docs/performance.md). A model with an edit region trains the region alone,
+  on its own rays."""
   chosen = (dataset.num_images < SPARSE_VIEWS and model.edit_region is None
             and model.capacity.background != "constant")
-  return dataclasses.replace(config, keypoint_depth_weight=SPARSE_KEYPOINT_DEPTH_WEIGHT
-                             if chosen else 0.0)
+  choices = {  # name: (sparse, otherwise)
+      "keypoint_depth_weight": (SPARSE_KEYPOINT_DEPTH_WEIGHT, 0.0),
+      "photo_consistency_weight": (SPARSE_PHOTO_CONSISTENCY_WEIGHT, 0.0),
+      "distortion_loss_weight": (SPARSE_DISTORTION_LOSS_WEIGHT, DISTORTION_LOSS_WEIGHT)}
+  return dataclasses.replace(config, **{
+      name: sparse if chosen else otherwise for name, (sparse, otherwise) in choices.items()
+      if getattr(config, name) is None})
 
 
 def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
@@ -303,6 +311,9 @@ def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
     keypoints = keypoint_depth.triangulate(dataset.images, dataset.cameras)
     if keypoints.count:
       data = data.replace(keypoints=jax.tree.map(jnp.asarray, keypoints))
+  if config.photo_consistency_weight > 0:
+    data = data.replace(neighbour_views=photo_consistency.neighbour_views(
+        dataset.cameras, config.photo_consistency_neighbours))
   return Trainer(model, config, data, init_state(model, config, init_variables), mesh=mesh)
 
 

@@ -14,3 +14,9 @@ def test_an_edit_keys_its_trainings_without_the_sparse_priors_at_their_defaults(
       field.name for field in dataclasses.fields(TrainConfig)}
   assert config.training_key(TrainConfig(keypoint_depth_weight=0.0))[
       "keypoint_depth_weight"] == 0.0
+
+
+def test_the_distortion_weight_left_to_the_capture_is_keyed_as_it_was():
+  assert config.training_key(TrainConfig())["distortion_loss_weight"] == 0.002
+  assert config.training_key(TrainConfig(distortion_loss_weight=0.01))[
+      "distortion_loss_weight"] == 0.01

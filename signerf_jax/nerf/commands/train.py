@@ -130,6 +130,9 @@ def _train_and_evaluate(args: argparse.Namespace, dataset, model, config, option
     if trainer.data.keypoints is not None:
       message += (f", depth at {trainer.data.keypoints.count} triangulated keypoint "
                   "observations (a sparse capture)")
+    if trainer.data.neighbour_views is not None:
+      message += (f", colours compared with the "
+                  f"{trainer.data.neighbour_views.shape[1]} nearest views")
     if not args.skip_eval:
       report = evaluate_command.evaluate_run(run_dir)
       message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "
