@@ -72,16 +72,17 @@ def sample_disagreement(edges, weights, rays: camera_lib.Rays, images,
   midpoints = sampling.midpoints(edges)
   finite = jnp.isfinite(midpoints)
   distances = jnp.where(finite, midpoints, 0.0)
+  # A point a unit along each ray (it projects onto the ray's own (sub)pixel), then its samples.
+  distances = jnp.concatenate([jnp.ones_like(distances[:, :1]), distances], axis=1)
   points = rays.origins[:, None] + distances[..., None] * rays.directions[:, None]
-  # Each ray's samples projected into its own camera (index 0) and its neighbours'.
+  # Projected into each ray's own camera (index 0) and its neighbours'.
   viewers = jnp.concatenate([rays.camera_indices[:, None],
                              neighbour_views[rays.camera_indices]], axis=1)  # [R, 1 + K]
   project = lambda indices, ray_points: camera_lib.project(
       jax.tree.map(lambda array: jnp.asarray(array)[indices], cameras), ray_points)
-  pixels, depth = jax.vmap(project)(viewers, jax.lax.stop_gradient(points))  # [R, 1 + K, S, ...]
-  # Any point of a ray projects onto its own (sub)pixel; the first sample is always finite.
+  pixels, depth = jax.vmap(project)(viewers, jax.lax.stop_gradient(points))  # [R, 1 + K, 1 + S]
   targets = bilinear_colours(images, rays.camera_indices, pixels[:, 0, 0])
-  neighbours, pixels, depth = viewers[:, 1:], pixels[:, 1:], depth[:, 1:]
+  neighbours, pixels, depth = viewers[:, 1:], pixels[:, 1:, 1:], depth[:, 1:, 1:]
   height, width = images.shape[1:3]
   inside = ((depth > 0) & (pixels[..., 0] >= 0) & (pixels[..., 0] <= width)
             & (pixels[..., 1] >= 0) & (pixels[..., 1] <= height))

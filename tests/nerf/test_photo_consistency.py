@@ -156,3 +156,13 @@ def test_the_capture_chooses_photo_consistency_and_less_distortion_for_sparse_sc
   assert trainer.data.neighbour_views.shape == (
       12, train.TrainConfig().photo_consistency_neighbours)
   assert training_run.make_trainer(dense, model=model).data.neighbour_views is None
+
+
+def test_a_first_sample_at_the_camera_leaves_the_rays_own_colour_as_it_is(plane_views):
+  # A zero-length interval at the camera centre projects nowhere; the ray's own colour is
+  # still its pixel's.
+  cameras, _ = plane_views
+  _, edges, surface = first_view_rays(cameras)
+  edges = jnp.concatenate([jnp.zeros_like(edges[:, :2]), edges], axis=1)
+  weights = 0.9 * jax.nn.one_hot(surface + 2, SAMPLES + 2)
+  assert float(disagreement(plane_views, weights, edges)) < 0.01
