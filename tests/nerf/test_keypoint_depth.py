@@ -1,15 +1,13 @@
 """Keypoint depths: triangulated keypoints of views of a textured plane lie on the plane, at the
 distance the cameras see it; textureless views give none; sparse captures of whole scenes
-train with them."""
-
-import dataclasses
+train with them (when the capture chooses them: tests/nerf/test_capture_choices.py)."""
 
 import cv2
 import numpy as np
 
 from signerf_jax import camera
 from signerf_jax.data.dataset import Dataset
-from signerf_jax.nerf import capacity, keypoint_depth, train, training_run
+from signerf_jax.nerf import keypoint_depth, train, training_run
 
 
 def plane_views(texture_seed: int | None, size: int = 160):
@@ -54,24 +52,6 @@ def test_textureless_views_give_no_keypoints():
   images, cameras = plane_views(texture_seed=None)
   depths = keypoint_depth.triangulate(images, cameras)
   assert depths.count == 0 and depths.pixels.shape == (0, 2)
-
-
-def test_the_capture_chooses_keypoint_depth_for_sparse_scenes_with_a_background_only(sphere):
-  on_constant = training_run.build_model(sphere)
-  assert on_constant.capacity.background == "constant"
-  scene = dataclasses.replace(on_constant, capacity=dataclasses.replace(
-      on_constant.capacity, background="last_sample"))  # as a 360-degree capture's
-  sparse, dense = sphere.subset(list(range(12))), sphere
-  assert dense.num_images >= capacity.SPARSE_VIEWS > sparse.num_images
-  chosen = lambda dataset, model=scene, config=train.TrainConfig(): (
-      training_run.with_capture_choices(config, dataset, model).keypoint_depth_weight)
-  assert chosen(sparse) == train.SPARSE_KEYPOINT_DEPTH_WEIGHT > 0
-  assert chosen(dense) == 0.0
-  assert chosen(sparse, on_constant) == 0.0
-  assert chosen(sparse, config=train.TrainConfig(keypoint_depth_weight=0.0)) == 0.0
-  assert chosen(dense, config=train.TrainConfig(keypoint_depth_weight=0.5)) == 0.5
-  region = dataclasses.replace(scene, edit_region=((-0.5,) * 3, (0.5,) * 3))
-  assert chosen(sparse, region) == 0.0
 
 
 def test_a_sparse_capture_with_a_background_trains_on_its_keypoints():

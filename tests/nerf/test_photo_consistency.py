@@ -1,8 +1,8 @@
 """Sample colour agreement with neighbouring views (`nerf.photo_consistency`): two cameras see
 a textured plane; a ray's weight at the plane costs least, more the further it lies off it;
 samples neither neighbour sees cost nothing; the gradient moves weight towards the plane and is
-finite on the hard cases; the loss is part of a training step when asked for, and the capture
-asks for it (with a quarter of the distortion loss) when it is sparse and has a background."""
+finite on the hard cases; the loss is part of a training step when asked for, and a sparse
+capture with a background trains with its views' neighbours."""
 
 import dataclasses
 
@@ -13,7 +13,7 @@ import pytest
 from small_nerf import SMALL_CONFIG, small_model
 
 from signerf_jax import camera
-from signerf_jax.nerf import capacity, photo_consistency, train, training_data, training_run
+from signerf_jax.nerf import photo_consistency, train, training_data, training_run
 
 SIZE = 32
 SAMPLES = 32
@@ -125,37 +125,22 @@ def test_the_disagreement_is_part_of_a_training_step_when_asked_for(sphere):
   new_state, statistics = step(model, config, state, data, np.float32(0.5))
   disagreement = float(statistics["photo_consistency"])
   assert 0 < disagreement <= config.photo_consistency_truncation
-  assert float(statistics["loss"]) >= 10 ** (-float(statistics["psnr"]) / 10) + 2.0 * disagreement - 1e-6
+  mse = 10 ** (-float(statistics["psnr"]) / 10)
+  assert float(statistics["loss"]) >= mse + 2.0 * disagreement - 1e-6
   assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(new_state.variables))
   _, without = step(model, SMALL_CONFIG, state, data, np.float32(0.5))
   assert "photo_consistency" not in without
 
 
-def test_the_capture_chooses_photo_consistency_and_less_distortion_for_sparse_scenes(sphere):
+def test_a_sparse_capture_with_a_background_trains_with_its_nearest_views(sphere):
+  # The capture's choice itself: tests/nerf/test_capture_choices.py.
   on_constant = training_run.build_model(sphere)
-  assert on_constant.capacity.background == "constant"
   model = dataclasses.replace(on_constant, capacity=dataclasses.replace(
       on_constant.capacity, background="last_sample"))  # as a 360-degree capture's
-  sparse, dense = sphere.subset(list(range(12))), sphere
-  assert dense.num_images >= capacity.SPARSE_VIEWS > sparse.num_images
-  chosen = lambda dataset, model=model, config=train.TrainConfig(): (
-      training_run.with_capture_choices(config, dataset, model).photo_consistency_weight)
-  assert chosen(sparse) == train.SPARSE_PHOTO_CONSISTENCY_WEIGHT > 0
-  assert chosen(dense) == 0.0
-  assert chosen(sparse, on_constant) == 0.0
-  assert chosen(sparse, config=train.TrainConfig(photo_consistency_weight=0.0)) == 0.0
-  assert chosen(dense, config=train.TrainConfig(photo_consistency_weight=0.5)) == 0.5
-  region = dataclasses.replace(model, edit_region=((-0.5,) * 3, (0.5,) * 3))
-  assert chosen(sparse, region) == 0.0
-  distortion = lambda dataset, model=model, config=train.TrainConfig(): (
-      training_run.with_capture_choices(config, dataset, model).distortion_loss_weight)
-  assert distortion(sparse) == train.SPARSE_DISTORTION_LOSS_WEIGHT
-  assert distortion(dense) == distortion(sparse, on_constant) == train.DISTORTION_LOSS_WEIGHT
-  assert distortion(sparse, config=train.TrainConfig(distortion_loss_weight=0.01)) == 0.01
-  trainer = training_run.make_trainer(sparse, model=model)
+  trainer = training_run.make_trainer(sphere.subset(list(range(12))), model=model)
   assert trainer.data.neighbour_views.shape == (
       12, train.TrainConfig().photo_consistency_neighbours)
-  assert training_run.make_trainer(dense, model=model).data.neighbour_views is None
+  assert training_run.make_trainer(sphere, model=model).data.neighbour_views is None
 
 
 def test_a_first_sample_at_the_camera_leaves_the_rays_own_colour_as_it_is(plane_views):
