@@ -9,8 +9,7 @@ directory's config.gin); the command-line flags of `signerf edit` are shorthand 
   SelectionConfig  where: an axis-aligned box, or a proxy mesh (file or primitive) placed by a
                    similarity transform or stood on the ground; mask dilation and feathering;
   SheetConfig      the reference sheet: grid, tile size, full frames or crops around the selection;
-  UpdateConfig     the image set update: through the sheet or each view on its own, views per
-                   device;
+  UpdateConfig     the image set update: through the sheet or view by view; views per device;
   FinetuneConfig   the NeRF update's losses (L1, optional LPIPS on rendered patches);
   EvaluationConfig the metrics and renders written at the end;
   NerfConsistencySettings  the evaluation's measurements of the edited NeRF itself (fit,
@@ -381,7 +380,8 @@ def as_json(config: Any) -> dict[str, Any]:
 # TrainConfig fields added after edits were first keyed stay out of a training's key at their
 # defaults, the distortion weight left to the capture is keyed as it was: earlier NeRFs stay.
 LATER_TRAINING_FIELDS = ("keypoint_depth_weight", "keypoint_rays", "photo_consistency_weight",
-                         "photo_consistency_neighbours", "photo_consistency_truncation")
+                         "photo_consistency_neighbours", "photo_consistency_truncation",
+                         "visual_hull")
 
 
 def training_key(config: TrainConfig) -> dict[str, Any]:

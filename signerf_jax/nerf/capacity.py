@@ -76,6 +76,8 @@ class Capacity:
       edit region's training and an edit's fine-tuning, `editing.finetune`, keep one ray a
       pixel) and rendering averages as many rays (`render.render_cameras`' default; the
       viewer renders one). 1: one ray through the pixel's centre.
+    sh_degree: spherical-harmonics degree of the colour's view-direction encoding
+      (sh_degree^2 channels; 1: the colour does not depend on the view).
   """
 
   contract: bool
@@ -102,6 +104,7 @@ class Capacity:
   coarse_to_fine: float = 0.0
   perspective_warp: bool = False
   pixel_samples: int = 1
+  sh_degree: int = 4
 
   @classmethod
   def from_json(cls, value: Mapping[str, Any]) -> "Capacity":
@@ -134,6 +137,12 @@ class Capacity:
 # Captures with fewer training views than this are sparse (object captures of 10-15 views):
 # `CapacityRules.pixel_samples`.
 SPARSE_VIEWS = 16
+# Spherical-harmonics degrees of the colour's view dependence (`CapacityRules.sh_degree`).
+SH_DEGREE = 4
+SPARSE_SH_DEGREE = 2
+# The fraction of training over which sparse bounded captures switch on their finer grid levels
+# (`CapacityRules.coarse_to_fine`).
+SPARSE_COARSE_TO_FINE = 0.25
 
 
 def _round_up(value: float, multiple: int) -> int:
@@ -179,6 +188,15 @@ class CapacityRules(validation.CheckedFields):
       the photos' pixels as they were taken, which improves held-out views of a sparse object
       capture. A capture with many views gains nothing, and a sparse real 360-degree
       (unbounded) capture loses (docs/performance.md), hence bounded and sparse only.
+    sh_degree: `Capacity.sh_degree`; None derives it: SPARSE_SH_DEGREE for sparse bounded
+      captures, SH_DEGREE otherwise. A few views see each surface from a few directions; a
+      colour free to vary with direction fits each photo from its own and guesses the held-out
+      ones, while a linear dependence still shows shading that moves with the view (lego with
+      12 views: docs/performance.md).
+    coarse_to_fine: `Capacity.coarse_to_fine`; None derives it: SPARSE_COARSE_TO_FINE for
+      sparse bounded captures, 0 otherwise. Fitting the coarse levels first (FreeNeRF's
+      frequency annealing) shapes the object before the fine levels can fit each photo's
+      detail on its own.
     overrides: `Capacity` fields to force after deriving, e.g. a fixed large configuration for
       comparison; None for none. (A mapping makes the rules unhashable: they are never a static
       jit argument, only the `Capacity` they produce is.)
@@ -197,6 +215,8 @@ class CapacityRules(validation.CheckedFields):
   appearance_embedding: bool = False
   render_sample_fraction: Annotated[float, Range(0, 1, low_inclusive=False)] = 1.0
   pixel_samples: PositiveInt | None = None
+  sh_degree: PositiveInt | None = None
+  coarse_to_fine: Annotated[float, Range(0, 1)] | None = None
   overrides: Mapping[str, Any] | None = None
 
   def __post_init__(self):
@@ -263,6 +283,7 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
   # About what a coarse pixel footprint covers per cell, capped where updates get expensive.
   occupancy_resolution = int(np.clip(_round_up(finest / 2, 16), 32, 128))
   proposal_samples, samples_per_ray, rays_per_batch = _samples_and_rays(scene, rules)
+  sparse_object = bounded and scene.num_images < SPARSE_VIEWS
   capacity = Capacity(
       contract=contract,
       background="constant" if bounded and scene.background_color is not None else "last_sample",
@@ -288,8 +309,10 @@ def derive_capacity(scene: SceneInfo, rules: CapacityRules = CapacityRules()) ->
       # scaling would damp (it lowers a forward-facing capture's quality).
       near_gradient_scaling=contract,
       perspective_warp=scene.perspective is not None,
-      pixel_samples=rules.pixel_samples or (2 if bounded and scene.num_images < SPARSE_VIEWS
-                                            else 1),
+      pixel_samples=rules.pixel_samples or (2 if sparse_object else 1),
+      sh_degree=rules.sh_degree or (SPARSE_SH_DEGREE if sparse_object else SH_DEGREE),
+      coarse_to_fine=(rules.coarse_to_fine if rules.coarse_to_fine is not None
+                      else SPARSE_COARSE_TO_FINE if sparse_object else 0.0),
   )
   return dataclasses.replace(capacity, **dict(rules.overrides or {}))
 
@@ -323,6 +346,8 @@ def describe(capacity: Capacity) -> str:
     parts.append("near-camera gradient scaling")
   if capacity.coarse_to_fine > 0:
     parts.append(f"coarse-to-fine grid levels over {capacity.coarse_to_fine:.0%} of training")
+  if capacity.sh_degree != SH_DEGREE:
+    parts.append(f"view dependence of spherical-harmonics degree {capacity.sh_degree}")
   if capacity.pixel_samples > 1:
     parts.append(f"{capacity.pixel_samples} x {capacity.pixel_samples} rays a pixel in training "
                  "and rendering (a sparse bounded capture)")

@@ -41,9 +41,8 @@ OCCUPANCY_DECAY = 0.95
 INITIAL_OPTICAL_DEPTH = 1.0
 # Proposal networks only shape the sampling: a few levels suffice (nerfacto uses 5).
 PROPOSAL_LEVELS = 5
-# Spherical-harmonics degrees of the colour's direction encoding (degree**2 channels): 1 is a
+# Spherical-harmonics degree of a diffuse colour's direction encoding (degree**2 channels): a
 # constant, i.e. no view dependence.
-VIEW_DEPENDENT_SH_DEGREE = 4
 DIFFUSE_SH_DEGREE = 1
 
 Variables = dict[str, Any]
@@ -94,7 +93,7 @@ class NerfModel:
     diffuse = self.edit_region is not None and not self.region_view_dependence
     return RadianceField(layout, width=capacity.mlp_width, num_appearance_embeddings=embeddings,
                          initial_density=self.initial_density,
-                         sh_degree=DIFFUSE_SH_DEGREE if diffuse else VIEW_DEPENDENT_SH_DEGREE)
+                         sh_degree=DIFFUSE_SH_DEGREE if diffuse else capacity.sh_degree)
 
   @functools.cached_property
   def proposal_fields(self) -> tuple[DensityField, ...]:

@@ -21,6 +21,8 @@ from signerf_jax.errors import InputError
 
 # Cells not yet evaluated hold this value and count as occupied (densities are >= 0).
 UNVISITED = -1.0
+# Cells the photos show empty (`carve`) hold this value: never evaluated, never occupied.
+CARVED = -2.0
 # Rendering marches through the box around the occupied cells but leaves out specks: small faint
 # groups of cells. A trained synthetic object's grid can hold a hundred groups of 1-3 faint
 # cells scattered over the whole scene box, beside the one large, opaque group of the object.
@@ -43,7 +45,12 @@ def density_threshold(grid, step: float, min_alpha: float):
 
 def occupied_cells(grid, step: float, min_alpha: float):
   """[R, R, R] bool: cells whose samples must be evaluated."""
-  return (grid < 0.0) | (grid > density_threshold(grid, step, min_alpha))
+  return (grid == UNVISITED) | (grid > density_threshold(grid, step, min_alpha))
+
+
+def carve(grid, keep):
+  """`grid` with the cells outside `keep` ([R, R, R] bool; `visual_hull.hull_cells`) CARVED."""
+  return jnp.where(keep, grid, CARVED)
 
 
 def occupied_box(occupied: np.ndarray, margin_cells: int = 1) -> np.ndarray:
@@ -111,7 +118,8 @@ def update(grid, density_fn: Callable[[jax.Array], jax.Array], key, update_index
   """Re-evaluates a slice of cells (cycling through all of them) at a random point inside each.
 
   Evaluated cells become max(decay * old, new) (new alone when unvisited); the others keep their
-  value, so a cell is never judged empty before the field has been asked about it.
+  value, so a cell is never judged empty before the field has been asked about it. CARVED cells
+  stay carved.
 
   Args:
     grid: [R, R, R] float32.
@@ -133,7 +141,8 @@ def update(grid, density_fn: Callable[[jax.Array], jax.Array], key, update_index
   points = (cells + jax.random.uniform(key, cells.shape)) / resolution
   density = jax.lax.stop_gradient(density_fn(points))
   old = grid.reshape(-1)[flat]
-  new = jnp.where(old < 0.0, density, jnp.maximum(old * decay, density))
+  new = jnp.where(old == CARVED, CARVED,
+                  jnp.where(old == UNVISITED, density, jnp.maximum(old * decay, density)))
   return grid.reshape(-1).at[flat].set(new).reshape(grid.shape)
 
 

@@ -75,6 +75,10 @@ class TrainConfig(validation.CheckedFields):
     photo_consistency_neighbours: the nearest training views (by camera position) compared.
     photo_consistency_truncation: the largest disagreement a sample counts (mean absolute
       RGB difference in [0, 1]): occlusion and reflections cost no more.
+    visual_hull: carve the occupancy grid to the visual hull of the photos' alpha
+      (`visual_hull`): cells some transparent pixel's ray crosses stay empty from the first
+      step. None: the capture chooses (`training_run.with_capture_choices`): photos with alpha
+      carve a model with an occupancy grid (and no edit region); False never carves.
     checkpoint_every_steps, checkpoint_every_seconds: checkpoint when either is reached.
     seed: PRNG seed of the run.
   """
@@ -96,6 +100,7 @@ class TrainConfig(validation.CheckedFields):
   photo_consistency_weight: NonNegativeFloat | None = None
   photo_consistency_neighbours: PositiveInt = 4
   photo_consistency_truncation: PositiveFloat = 0.25
+  visual_hull: bool | None = None
   checkpoint_every_steps: PositiveInt = 1000
   checkpoint_every_seconds: PositiveFloat = 120.0
   seed: NonNegativeInt = 0

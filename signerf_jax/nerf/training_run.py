@@ -28,7 +28,7 @@ from jax.sharding import Mesh
 from signerf_jax import checkpoints, files, ownership, parallel, training_loop
 from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import keypoint_depth, photo_consistency
+from signerf_jax.nerf import keypoint_depth, occupancy, photo_consistency, visual_hull
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import SPARSE_VIEWS, Capacity, CapacityRules, derive_capacity
 from signerf_jax.nerf.scene_info import SceneInfo
@@ -280,21 +280,39 @@ def with_capture_choices(config: TrainConfig, dataset: Dataset, model: nerf_mode
   """`config` with the settings it leaves to the capture (None) chosen: keypoint depth, photo
   consistency and a quarter of the distortion loss for a sparse capture (fewer than
   `SPARSE_VIEWS` training views) of a scene whose background the field models (360-degree and
-  forward-facing captures); otherwise neither prior and the usual distortion loss.
-  An object on a constant background is left without either: its silhouettes' corners against
-  the background are keypoints of no 3D point (with them lego with 12 views lost 1.9 dB), and
-  its occupancy-grid samples (up to `Capacity.march_steps` a ray) made each step four times as
-  slow to compare (docs/performance.md). A model with an edit region trains the region alone,
-  on its own rays."""
+  forward-facing captures); otherwise neither prior and the usual distortion loss. The visual
+  hull whenever the photos have alpha and the model an occupancy grid (`can_carve`).
+  An object on a constant background is left without keypoints and photo consistency: its
+  silhouettes' corners against the background are keypoints of no 3D point (with them lego
+  with 12 views lost 1.9 dB), and its occupancy-grid samples (up to `Capacity.march_steps` a
+  ray) made each step four times as slow to compare (docs/performance.md). A model with an
+  edit region trains the region alone, on its own rays."""
   chosen = (dataset.num_images < SPARSE_VIEWS and model.edit_region is None
             and model.capacity.background != "constant")
   choices = {  # name: (sparse, otherwise)
       "keypoint_depth_weight": (SPARSE_KEYPOINT_DEPTH_WEIGHT, 0.0),
       "photo_consistency_weight": (SPARSE_PHOTO_CONSISTENCY_WEIGHT, 0.0),
       "distortion_loss_weight": (SPARSE_DISTORTION_LOSS_WEIGHT, DISTORTION_LOSS_WEIGHT)}
-  return dataclasses.replace(config, **{
-      name: sparse if chosen else otherwise for name, (sparse, otherwise) in choices.items()
-      if getattr(config, name) is None})
+  chosen_values = {name: sparse if chosen else otherwise
+                   for name, (sparse, otherwise) in choices.items()}
+  chosen_values["visual_hull"] = can_carve(dataset, model)
+  return dataclasses.replace(config, **{name: value for name, value in chosen_values.items()
+                                        if getattr(config, name) is None})
+
+
+def can_carve(dataset: Dataset, model: nerf_model.NerfModel) -> bool:
+  """Whether the photos' alpha can carve the model's occupancy grid (`visual_hull`)."""
+  return (dataset.alphas is not None and model.capacity.sampler == "occupancy"
+          and model.edit_region is None)
+
+
+def carved_to_visual_hull(state: TrainState, dataset: Dataset, model: nerf_model.NerfModel
+                          ) -> TrainState:
+  """`state` with its occupancy grid's cells outside the photos' visual hull carved."""
+  keep = visual_hull.hull_cells(dataset.cameras, dataset.alphas,
+                                model.capacity.occupancy_resolution, model.from_unit_cube)
+  grid = occupancy.carve(state.variables["occupancy"], jnp.asarray(keep))
+  return state.replace(variables={**state.variables, "occupancy": grid})
 
 
 def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
@@ -314,7 +332,10 @@ def make_trainer(dataset: Dataset, *, model: nerf_model.NerfModel | None = None,
   if config.photo_consistency_weight > 0:
     data = data.replace(neighbour_views=photo_consistency.neighbour_views(
         dataset.cameras, config.photo_consistency_neighbours))
-  return Trainer(model, config, data, init_state(model, config, init_variables), mesh=mesh)
+  state = init_state(model, config, init_variables)
+  if config.visual_hull and can_carve(dataset, model):
+    state = carved_to_visual_hull(state, dataset, model)
+  return Trainer(model, config, data, state, mesh=mesh)
 
 
 def train(dataset: Dataset, run_dir: str | os.PathLike, *, init_variables=None,

@@ -191,23 +191,37 @@ def test_real_captures_get_near_camera_gradient_scaling_and_it_is_described():
   assert "occupancy-grid sampling" in capacity.describe(synthetic)
 
 
-@pytest.mark.parametrize("views, expected", [(1, 2), (12, 2), (15, 2), (16, 1), (100, 1)])
-def test_sparse_captures_model_a_pixel_as_several_rays_and_say_so(views, expected):
+@pytest.mark.parametrize("views, sparse", [(1, True), (12, True), (15, True), (16, False),
+                                          (100, False)])
+def test_sparse_objects_model_a_pixel_as_several_rays_less_view_dependence_coarse_first(
+    views, sparse):
   scene = dataclasses.replace(LEGO_100, num_images=views)
   derived = capacity.derive_capacity(scene)
-  assert derived.pixel_samples == expected
-  assert ("rays a pixel" in capacity.describe(derived)) == (expected > 1)
+  assert derived.pixel_samples == (2 if sparse else 1)
+  assert derived.sh_degree == (capacity.SPARSE_SH_DEGREE if sparse else capacity.SH_DEGREE)
+  assert derived.coarse_to_fine == (capacity.SPARSE_COARSE_TO_FINE if sparse else 0.0)
+  assert capacity.SPARSE_SH_DEGREE < capacity.SH_DEGREE
+  assert nerf_model.NerfModel(scene, derived).field.sh_degree == derived.sh_degree
+  line = capacity.describe(derived)
+  for words in ("rays a pixel", "spherical-harmonics degree", "coarse-to-fine"):
+    assert (words in line) == sparse
   for pinned in (1, 3):
-    assert capacity.derive_capacity(scene, capacity.CapacityRules(
-        pixel_samples=pinned)).pixel_samples == pinned
-  # Not for unbounded or forward-facing captures (measured worse on a real 360-degree one).
+    pinned_rules = capacity.CapacityRules(pixel_samples=pinned, sh_degree=pinned,
+                                          coarse_to_fine=pinned / 4)
+    pinned_capacity = capacity.derive_capacity(scene, pinned_rules)
+    assert (pinned_capacity.pixel_samples, pinned_capacity.sh_degree,
+            pinned_capacity.coarse_to_fine) == (pinned, pinned, pinned / 4)
+  # Not for unbounded or forward-facing captures (measured worse, or no better, on a real
+  # 360-degree one).
   for kind in ("unbounded", "forward_facing"):
-    assert capacity.derive_capacity(dataclasses.replace(
-        scene, kind=kind, background_color=None)).pixel_samples == 1
-  # Runs saved before the field existed read as one ray a pixel.
+    other = capacity.derive_capacity(dataclasses.replace(scene, kind=kind, background_color=None))
+    assert (other.pixel_samples, other.sh_degree, other.coarse_to_fine) == (
+        1, capacity.SH_DEGREE, 0.0)
+  # Runs saved before the fields existed read as one ray a pixel, the full view dependence.
   saved = dataclasses.asdict(derived)
-  del saved["pixel_samples"]
+  del saved["pixel_samples"], saved["sh_degree"]
   assert capacity.Capacity.from_json(saved).pixel_samples == 1
+  assert capacity.Capacity.from_json(saved).sh_degree == capacity.SH_DEGREE
 
 
 def test_forward_facing_grid_resolves_one_pixel_angle_per_finest_cell():

@@ -9,10 +9,12 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from signerf_jax import checkpoints, cli, configs, ownership
 from signerf_jax.data import frame as frame_lib
 from signerf_jax.data import load_dataset, load_views
-from signerf_jax.nerf import capacity, train, training_run
+from signerf_jax.nerf import capacity, occupancy, train, training_run
 from signerf_jax.errors import InputError
 from signerf_jax.nerf.commands import (DataConfig, add_data_arguments, data_options,
                                        load_recorded_dataset)
@@ -133,6 +135,10 @@ def _train_and_evaluate(args: argparse.Namespace, dataset, model, config, option
     if trainer.data.neighbour_views is not None:
       message += (f", colours compared with the "
                   f"{trainer.data.neighbour_views.shape[1]} nearest views")
+    grid = trainer.state.variables.get("occupancy")
+    if grid is not None and np.any(np.asarray(grid) == occupancy.CARVED):
+      message += (f", {np.mean(np.asarray(grid) == occupancy.CARVED):.0%} of the scene box "
+                  "outside the photos' visual hull (empty by their alpha)")
     if not args.skip_eval:
       report = evaluate_command.evaluate_run(run_dir)
       message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "
