@@ -56,7 +56,8 @@ class TrainConfig(validation.CheckedFields):
     interlevel_loss_weight: weight of the proposal loss.
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss (crisper surfaces). None:
       the capture chooses (`training_run.with_capture_choices`): SPARSE_DISTORTION_LOSS_WEIGHT
-      for a sparse capture of a scene with a background, DISTORTION_LOSS_WEIGHT otherwise
+      for a sparse capture of a scene with a background, SPARSE_OBJECT_DISTORTION_LOSS_WEIGHT
+      for one of an object on a constant background, DISTORTION_LOSS_WEIGHT otherwise
       (`distortion_weight`).
     opacity_entropy_weight: weight of a prior pushing each ray's opacity towards 0 or 1
       (`losses.opacity_entropy`; for a model with an edit region, the opacity of the trained
@@ -106,12 +107,13 @@ class TrainConfig(validation.CheckedFields):
   seed: NonNegativeInt = 0
 
 
-# The distortion loss's weight (`TrainConfig.distortion_loss_weight`), and that of sparse
-# captures with a background: with photo consistency, which already moves each ray's weight to
-# where the photos agree, a quarter of it gave stitch with 13 views 0.6 dB more held-out and as
-# consistent a depth (docs/performance.md).
+# The distortion loss's weight (`TrainConfig.distortion_loss_weight`), that of sparse captures
+# with a background (with photo consistency, which already moves each ray's weight to where the
+# photos agree, a quarter gave stitch with 13 views 0.6 dB more held-out) and of sparse objects
+# on a constant background (five times gave lego with 12 views 0.3 dB; docs/performance.md).
 DISTORTION_LOSS_WEIGHT = 0.002
 SPARSE_DISTORTION_LOSS_WEIGHT = 0.0005
+SPARSE_OBJECT_DISTORTION_LOSS_WEIGHT = 0.01
 # The keypoint depth weight of sparse captures (`TrainConfig.keypoint_depth_weight`): stitch with
 # 13 views gained ~3 dB held-out with it (docs/performance.md).
 SPARSE_KEYPOINT_DEPTH_WEIGHT = 1.0
