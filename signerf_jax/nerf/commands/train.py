@@ -136,9 +136,10 @@ def _train_and_evaluate(args: argparse.Namespace, dataset, model, config, option
       message += (f", colours compared with the "
                   f"{trainer.data.neighbour_views.shape[1]} nearest views")
     grid = trainer.state.variables.get("occupancy")
-    if grid is not None and np.any(np.asarray(grid) == occupancy.CARVED):
-      message += (f", {np.mean(np.asarray(grid) == occupancy.CARVED):.0%} of the scene box "
-                  "outside the photos' visual hull (empty by their alpha)")
+    carved = 0.0 if grid is None else float(np.mean(np.asarray(grid) == occupancy.CARVED))
+    if carved:
+      message += (f", {carved:.0%} of the scene box outside the photos' visual hull (empty by "
+                  "their alpha)")
     if not args.skip_eval:
       report = evaluate_command.evaluate_run(run_dir)
       message += (f"; held-out {report['held_out']['psnr']:.2f} dB / SSIM "
