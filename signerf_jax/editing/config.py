@@ -34,7 +34,8 @@ from signerf_jax.errors import InputError
 from signerf_jax.geometry.reference_cameras import ReferencePlacement
 from signerf_jax.metrics.consistency import ConsistencySettings, Matcher
 from signerf_jax.nerf.capacity import CapacityRules
-from signerf_jax.nerf.train import TrainConfig, distortion_weight
+from signerf_jax.nerf.capture_choices import USUAL_VALUES, capture_default
+from signerf_jax.nerf.train import TrainConfig
 from signerf_jax.validation import (NonNegativeFloat, NonNegativeInt, OpenUnitInterval,
                                     PositiveFloat, PositiveInt, Range, UnitInterval, Vector3)
 
@@ -378,7 +379,7 @@ def as_json(config: Any) -> dict[str, Any]:
 
 
 # TrainConfig fields added after edits were first keyed stay out of a training's key at their
-# defaults, the distortion weight left to the capture is keyed as it was: earlier NeRFs stay.
+# defaults, the settings left to the capture are keyed as they were: earlier NeRFs stay.
 LATER_TRAINING_FIELDS = ("keypoint_depth_weight", "keypoint_rays", "photo_consistency_weight",
                          "photo_consistency_neighbours", "photo_consistency_truncation",
                          "visual_hull")
@@ -386,10 +387,9 @@ LATER_TRAINING_FIELDS = ("keypoint_depth_weight", "keypoint_rays", "photo_consis
 
 def training_key(config: TrainConfig) -> dict[str, Any]:
   """A NeRF training's settings for its stage key (`as_json`, with the fields above)."""
-  default = TrainConfig()
   key = {name: value for name, value in as_json(config).items()
-         if not (name in LATER_TRAINING_FIELDS and value == getattr(default, name))}
-  return key | {"distortion_loss_weight": distortion_weight(config)}
+         if not (name in LATER_TRAINING_FIELDS and value == getattr(TrainConfig(), name))}
+  return key | {name: capture_default(config, name) for name in USUAL_VALUES}
 
 
 def _jsonable(value):

@@ -46,6 +46,7 @@ from signerf_jax.errors import InputError
 from signerf_jax.metrics import lpips
 from signerf_jax.nerf import losses, occupancy, train, training_data, training_run
 from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.capture_choices import capture_default
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +113,7 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
                                           render_key, training=True, surroundings=surroundings)
     ray_weights = pixel_weight * outputs["ray_complete"]
     l1 = weighted_l1(outputs["rgb"], target, ray_weights)
-    loss = l1 + train.distortion_weight(config) * losses.distortion_loss(
+    loss = l1 + capture_default(config, "distortion_loss_weight") * losses.distortion_loss(
         aux["edges"], aux["weights"], model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(

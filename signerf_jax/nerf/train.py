@@ -30,6 +30,7 @@ from jax.sharding import Mesh
 from signerf_jax import parallel, validation
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import keypoint_depth, losses, photo_consistency, training_data
+from signerf_jax.nerf.capture_choices import capture_default
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.encoding import level_weights_at
 from signerf_jax.nerf.training_data import TrainingData
@@ -44,8 +45,10 @@ class TrainConfig(validation.CheckedFields):
     steps: training steps (the learning-rate schedule spans them).
     max_seconds: wall-clock training time budget (None = no limit): training stops there, and
       the learning-rate schedule spans it (`Trainer.progress`).
-    learning_rate: peak Adam learning rate (after a linear warm-up).
-    final_learning_rate: learning rate at the end of the schedule (exponential decay).
+    learning_rate, final_learning_rate: peak Adam learning rate (after a linear warm-up) and
+      the rate at the end of the schedule (exponential decay). None: the capture chooses
+      (`capture_choices.with_capture_choices`): SPARSE_OBJECT_LEARNING_RATES for a sparse capture
+      of an object on a constant background, LEARNING_RATES otherwise (`capture_default`).
     warmup_steps: linear warm-up length.
     gradient_clip_norm: global-norm gradient clipping.
     adam_eps: Adam's epsilon (tiny, as instant-NGP: most table rows see tiny gradients).
@@ -55,30 +58,29 @@ class TrainConfig(validation.CheckedFields):
       no gradient to become dense where the scene needs it.
     interlevel_loss_weight: weight of the proposal loss.
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss (crisper surfaces). None:
-      the capture chooses (`training_run.with_capture_choices`): SPARSE_DISTORTION_LOSS_WEIGHT
+      the capture chooses (`capture_choices.with_capture_choices`): SPARSE_DISTORTION_LOSS_WEIGHT
       for a sparse capture of a scene with a background, SPARSE_OBJECT_DISTORTION_LOSS_WEIGHT
-      for one of an object on a constant background, DISTORTION_LOSS_WEIGHT otherwise
-      (`distortion_weight`).
+      for one of an object on a constant background, DISTORTION_LOSS_WEIGHT otherwise.
     opacity_entropy_weight: weight of a prior pushing each ray's opacity towards 0 or 1
       (`losses.opacity_entropy`; for a model with an edit region, the opacity of the trained
       field inside the region): against the haze a field fitted to views that disagree becomes.
     keypoint_depth_weight: weight of the depth error at triangulated keypoints of the
       training views (`keypoint_depth`, `losses.disparity_error`; models without an edit
       region): depth the photos fix where the photometric loss alone does not find it. None:
-      the capture chooses (`training_run.with_capture_choices`): SPARSE_KEYPOINT_DEPTH_WEIGHT
+      the capture chooses (`capture_choices.with_capture_choices`): SPARSE_KEYPOINT_DEPTH_WEIGHT
       for a sparse capture of a scene with a background, 0 otherwise.
     keypoint_rays: keypoint rays each step.
     photo_consistency_weight: weight of the colour disagreement of each training ray's samples
       with its neighbouring training views (`photo_consistency`; models without an edit
       region): it moves weight from floaters to where the other photos agree. None: the
-      capture chooses (`training_run.with_capture_choices`): SPARSE_PHOTO_CONSISTENCY_WEIGHT
+      capture chooses (`capture_choices.with_capture_choices`): SPARSE_PHOTO_CONSISTENCY_WEIGHT
       for a sparse capture of a scene with a background, 0 otherwise.
     photo_consistency_neighbours: the nearest training views (by camera position) compared.
     photo_consistency_truncation: the largest disagreement a sample counts (mean absolute
       RGB difference in [0, 1]): occlusion and reflections cost no more.
     visual_hull: carve the occupancy grid to the visual hull of the photos' alpha
       (`visual_hull`): cells some transparent pixel's ray crosses stay empty from the first
-      step. None: the capture chooses (`training_run.with_capture_choices`): photos with alpha
+      step. None: the capture chooses (`capture_choices.with_capture_choices`): photos with alpha
       carve a model with an occupancy grid (and no edit region); False never carves.
     checkpoint_every_steps, checkpoint_every_seconds: checkpoint when either is reached.
     seed: PRNG seed of the run.
@@ -86,8 +88,8 @@ class TrainConfig(validation.CheckedFields):
 
   steps: PositiveInt = 5000
   max_seconds: PositiveFloat | None = None
-  learning_rate: PositiveFloat = 1e-2
-  final_learning_rate: PositiveFloat = 1e-3
+  learning_rate: PositiveFloat | None = None
+  final_learning_rate: PositiveFloat | None = None
   warmup_steps: NonNegativeInt = 50
   gradient_clip_norm: PositiveFloat = 1.0
   adam_eps: PositiveFloat = 1e-15
@@ -107,21 +109,6 @@ class TrainConfig(validation.CheckedFields):
   seed: NonNegativeInt = 0
 
 
-# The distortion loss's weight (`TrainConfig.distortion_loss_weight`), that of sparse captures
-# with a background (with photo consistency, which already moves each ray's weight to where the
-# photos agree, a quarter gave stitch with 13 views 0.6 dB more held-out) and of sparse objects
-# on a constant background (five times gave lego with 12 views 0.3 dB; docs/performance.md).
-DISTORTION_LOSS_WEIGHT = 0.002
-SPARSE_DISTORTION_LOSS_WEIGHT = 0.0005
-SPARSE_OBJECT_DISTORTION_LOSS_WEIGHT = 0.01
-# The keypoint depth weight of sparse captures (`TrainConfig.keypoint_depth_weight`): stitch with
-# 13 views gained ~3 dB held-out with it (docs/performance.md).
-SPARSE_KEYPOINT_DEPTH_WEIGHT = 1.0
-# The photo-consistency weight of sparse captures (`TrainConfig.photo_consistency_weight`):
-# stitch with 13 views gained ~0.7 dB held-out with it (docs/performance.md).
-SPARSE_PHOTO_CONSISTENCY_WEIGHT = 0.1
-
-
 @struct.dataclass
 class TrainState:
   """Everything a step reads and writes (donated to the step, so updated in place)."""
@@ -130,14 +117,6 @@ class TrainState:
   variables: dict[str, Any]
   optimizer_state: optax.OptState  # `make_optimizer`'s
   key: jax.Array  # the run's base key; step keys are fold_in(key, step)
-
-
-def distortion_weight(config: TrainConfig) -> float:
-  """`config.distortion_loss_weight`, or DISTORTION_LOSS_WEIGHT where the capture has not
-  chosen it (a config `training_run.with_capture_choices` did not see)."""
-  if config.distortion_loss_weight is None:
-    return DISTORTION_LOSS_WEIGHT
-  return config.distortion_loss_weight
 
 
 def learning_rate(config: TrainConfig, step, progress):
@@ -152,8 +131,9 @@ def learning_rate(config: TrainConfig, step, progress):
       config.max_seconds (`Trainer.progress`): with a time budget the schedule spans it.
   """
   warmup = jnp.clip((step + 1) / max(config.warmup_steps, 1), 0.01, 1.0)
-  ratio = config.final_learning_rate / config.learning_rate
-  return config.learning_rate * warmup * ratio**jnp.clip(progress, 0.0, 1.0)
+  peak = capture_default(config, "learning_rate")
+  ratio = capture_default(config, "final_learning_rate") / peak
+  return peak * warmup * ratio**jnp.clip(progress, 0.0, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,7 +259,7 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     pixel_rgb = outputs["rgb"].reshape(-1, rays_per_pixel, 3).mean(axis=1)
     pixel_complete = outputs["ray_complete"].reshape(-1, rays_per_pixel).all(axis=1)
     mse = losses.weighted_mse(pixel_rgb, target, pixel_weight * pixel_complete)
-    loss = mse + distortion_weight(config) * losses.distortion_loss(
+    loss = mse + capture_default(config, "distortion_loss_weight") * losses.distortion_loss(
         aux["edges"], aux["weights"], model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(

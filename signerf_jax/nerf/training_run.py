@@ -30,13 +30,11 @@ from signerf_jax.data.dataset import Dataset
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import keypoint_depth, occupancy, photo_consistency, visual_hull
 from signerf_jax.nerf import model as nerf_model
-from signerf_jax.nerf.capacity import SPARSE_VIEWS, Capacity, CapacityRules, derive_capacity
+from signerf_jax.nerf.capacity import Capacity, CapacityRules, derive_capacity
 from signerf_jax.nerf.scene_info import SceneInfo
-from signerf_jax.nerf.train import (DISTORTION_LOSS_WEIGHT, SPARSE_DISTORTION_LOSS_WEIGHT,
-                                    SPARSE_KEYPOINT_DEPTH_WEIGHT,
-                                    SPARSE_OBJECT_DISTORTION_LOSS_WEIGHT,
-                                    SPARSE_PHOTO_CONSISTENCY_WEIGHT, TrainConfig, TrainState,
-                                    init_state, make_train_step, upgrade_state_dict)
+from signerf_jax.nerf.capture_choices import can_carve, with_capture_choices
+from signerf_jax.nerf.train import (TrainConfig, TrainState, init_state, make_train_step,
+                                    upgrade_state_dict)
 from signerf_jax.nerf.training_data import TrainingData, with_region_rays
 
 MODEL_FILE = "model.json"
@@ -274,40 +272,6 @@ def build_model(dataset: Dataset, capacity: Capacity | None = None,
   """The model for a dataset: `capacity`, or the one `rules` derive from the dataset."""
   scene = SceneInfo.from_dataset(dataset)
   return nerf_model.NerfModel(scene, capacity or derive_capacity(scene, rules))
-
-
-def with_capture_choices(config: TrainConfig, dataset: Dataset, model: nerf_model.NerfModel
-                         ) -> TrainConfig:
-  """`config` with the settings it leaves to the capture (None) chosen. A sparse capture
-  (fewer than `SPARSE_VIEWS` training views) of a scene whose background the field models
-  (360-degree and forward-facing captures) gets keypoint depth, photo consistency and a quarter
-  of the distortion loss; a sparse capture of an object on a constant background five times
-  the distortion loss; any other the usual distortion loss and neither prior. Photos with alpha
-  carve the visual hull whenever the model has an occupancy grid (`can_carve`).
-  An object on a constant background is left without keypoints and photo consistency: its
-  silhouettes' corners against the background are keypoints of no 3D point (with them lego
-  with 12 views lost 1.9 dB), and its occupancy-grid samples (up to `Capacity.march_steps` a
-  ray) made each step four times as slow to compare (docs/performance.md). A model with an
-  edit region trains the region alone, on its own rays."""
-  sparse = dataset.num_images < SPARSE_VIEWS and model.edit_region is None
-  with_background = model.capacity.background != "constant"
-  priors = sparse and with_background
-  distortion = DISTORTION_LOSS_WEIGHT
-  if sparse:
-    distortion = (SPARSE_DISTORTION_LOSS_WEIGHT if with_background
-                  else SPARSE_OBJECT_DISTORTION_LOSS_WEIGHT)
-  chosen = {"keypoint_depth_weight": SPARSE_KEYPOINT_DEPTH_WEIGHT if priors else 0.0,
-            "photo_consistency_weight": SPARSE_PHOTO_CONSISTENCY_WEIGHT if priors else 0.0,
-            "distortion_loss_weight": distortion,
-            "visual_hull": can_carve(dataset, model)}
-  return dataclasses.replace(config, **{name: value for name, value in chosen.items()
-                                        if getattr(config, name) is None})
-
-
-def can_carve(dataset: Dataset, model: nerf_model.NerfModel) -> bool:
-  """Whether the photos' alpha can carve the model's occupancy grid (`visual_hull`)."""
-  return (dataset.alphas is not None and model.capacity.sampler == "occupancy"
-          and model.edit_region is None)
 
 
 def carved_to_visual_hull(state: TrainState, dataset: Dataset, model: nerf_model.NerfModel

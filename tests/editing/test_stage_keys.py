@@ -2,6 +2,8 @@
 
 import dataclasses
 
+import pytest
+
 from signerf_jax.editing import config
 from signerf_jax.nerf.train import TrainConfig
 
@@ -16,7 +18,11 @@ def test_an_edit_keys_its_trainings_without_the_sparse_priors_at_their_defaults(
       "keypoint_depth_weight"] == 0.0
 
 
-def test_the_distortion_weight_left_to_the_capture_is_keyed_as_it_was():
-  assert config.training_key(TrainConfig())["distortion_loss_weight"] == 0.002
-  assert config.training_key(TrainConfig(distortion_loss_weight=0.01))[
-      "distortion_loss_weight"] == 0.01
+@pytest.mark.parametrize("name, keyed_as, given", [
+    ("distortion_loss_weight", 0.002, 0.01),
+    ("learning_rate", 1e-2, 5e-3),
+    ("final_learning_rate", 1e-3, 5e-4),
+])
+def test_the_settings_left_to_the_capture_are_keyed_as_they_were(name, keyed_as, given):
+  assert config.training_key(TrainConfig())[name] == keyed_as
+  assert config.training_key(TrainConfig(**{name: given}))[name] == given

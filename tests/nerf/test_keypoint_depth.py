@@ -7,7 +7,7 @@ import numpy as np
 
 from signerf_jax import camera
 from signerf_jax.data.dataset import Dataset
-from signerf_jax.nerf import keypoint_depth, train, training_run
+from signerf_jax.nerf import capture_choices, keypoint_depth, train, training_run
 
 
 def plane_views(texture_seed: int | None, size: int = 160):
@@ -61,7 +61,7 @@ def test_a_sparse_capture_with_a_background_trains_on_its_keypoints():
                     scene_bounds=np.array([[-1, -1, -0.5], [1, 1, 0.5]], np.float32),
                     scene_kind="unbounded", near=0.1, far=10.0)
   trainer = training_run.make_trainer(dataset)
-  assert trainer.config.keypoint_depth_weight == train.SPARSE_KEYPOINT_DEPTH_WEIGHT
+  assert trainer.config.keypoint_depth_weight == capture_choices.SPARSE_KEYPOINT_DEPTH_WEIGHT
   assert trainer.data.keypoints is not None and trainer.data.keypoints.count >= 100
   off = training_run.make_trainer(dataset, config=train.TrainConfig(keypoint_depth_weight=0.0))
   assert off.data.keypoints is None

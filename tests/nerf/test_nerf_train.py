@@ -150,8 +150,8 @@ def test_a_time_budget_is_what_the_schedule_spans(sphere):
   assert trainer.seconds_trained >= 3.0 and trainer.step < 1000
   assert trainer.progress == 1.0
   # The last step ran at the end of the schedule (within one step's share of the time).
-  final = config.final_learning_rate
-  assert final <= statistics["learning_rate"] <= final * (config.learning_rate / final)**(
+  final = trainer.config.final_learning_rate
+  assert final <= statistics["learning_rate"] <= final * (trainer.config.learning_rate / final)**(
       2 * (trainer.seconds_trained / trainer.step) / 3.0)
 
 

@@ -13,7 +13,7 @@ from analytic_scene import SPHERE_RADIUS
 from small_nerf import SMALL_CONFIG, small_model
 
 from signerf_jax import camera
-from signerf_jax.nerf import occupancy, training_run, visual_hull
+from signerf_jax.nerf import capture_choices, occupancy, training_run, visual_hull
 
 SIZE = 48
 RESOLUTION = 24
@@ -160,4 +160,4 @@ def test_training_on_photos_with_alpha_carves_what_they_show_empty(sphere):
   for other in (told_not_to, without_alpha):
     assert not np.any(np.asarray(other.state.variables["occupancy"]) == occupancy.CARVED)
   region = dataclasses.replace(model, edit_region=((-0.5,) * 3, (0.5,) * 3))
-  assert not training_run.with_capture_choices(SMALL_CONFIG, with_alpha, region).visual_hull
+  assert not capture_choices.with_capture_choices(SMALL_CONFIG, with_alpha, region).visual_hull
