@@ -6,7 +6,7 @@ settings class calls `check_fields(self)` first thing in `__post_init__`, so a v
 command-line flag or Python is checked when the settings are built, before any work starts, and
 the error names the parameter, the value and what is allowed:
 
-    TrainConfig.learning_rate: must be a finite number > 0, got -0.01
+    TrainConfig.steps: must be an integer >= 1, got -5
 
 Checks that relate two fields (min <= max) stay in the class's own `__post_init__`.
 """

@@ -114,7 +114,7 @@ def truncated_checkpoint(tmp_path, inputs):
 def negative_learning_rate(tmp_path, inputs):
   return (["train", "--data", str(inputs["scene"]), "--run", str(tmp_path / "r"), "--gin_param",
            "TrainConfig.learning_rate = -0.01"],
-          ["TrainConfig.learning_rate", "must be a finite number > 0, got -0.01"], tmp_path / "r")
+          ["TrainConfig.learning_rate", "must be a finite number > 0 or None, got -0.01"], tmp_path / "r")
 
 
 def negative_steps(tmp_path, inputs):

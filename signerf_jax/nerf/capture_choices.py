@@ -12,8 +12,8 @@ from signerf_jax.data.dataset import Dataset
 from signerf_jax.nerf import model as nerf_model
 from signerf_jax.nerf.capacity import SPARSE_VIEWS
 
-# A `train.TrainConfig` (which imports this module: `capture_default`).
-TrainConfig = TypeVar("TrainConfig")
+# A `train.TrainConfig` (train imports this module, for `capture_default`).
+Config = TypeVar("Config")
 
 # The distortion loss's weight (`TrainConfig.distortion_loss_weight`), that of sparse captures
 # with a background (with photo consistency, which already moves each ray's weight to where the
@@ -29,14 +29,14 @@ SPARSE_KEYPOINT_DEPTH_WEIGHT = 1.0
 # stitch with 13 views gained ~0.7 dB held-out with it (docs/performance.md).
 SPARSE_PHOTO_CONSISTENCY_WEIGHT = 0.1
 # (learning_rate, final_learning_rate) of most captures and of sparse objects on a constant
-# background: these are under-fitted within minutes (their held-out PSNR follows their training
-# views' fit), and twice the rates gave lego with 12 views 0.1-0.7 dB (docs/performance.md).
+# background. The latter are under-fitted within minutes (their held-out PSNR follows their
+# training views' fit): twice the rates gave lego with 12 views 0.1-0.7 dB (docs/performance.md).
 LEARNING_RATES = (1e-2, 1e-3)
 SPARSE_OBJECT_LEARNING_RATES = (2e-2, 2e-3)
 
 
-def with_capture_choices(config: TrainConfig, dataset: Dataset, model: nerf_model.NerfModel
-                         ) -> TrainConfig:
+def with_capture_choices(config: Config, dataset: Dataset, model: nerf_model.NerfModel
+                         ) -> Config:
   """`config` with the settings it leaves to the capture (None) chosen. A sparse capture
   (fewer than `SPARSE_VIEWS` training views) of a scene whose background the field models
   (360-degree and forward-facing captures) gets keypoint depth, photo consistency and a quarter
@@ -78,7 +78,7 @@ USUAL_VALUES = {"distortion_loss_weight": DISTORTION_LOSS_WEIGHT,
                 "learning_rate": LEARNING_RATES[0], "final_learning_rate": LEARNING_RATES[1]}
 
 
-def capture_default(config: TrainConfig, name: str) -> float:
+def capture_default(config: Config, name: str) -> float:
   """`config.<name>`, or its value for most captures (`USUAL_VALUES`) where the capture has not
   chosen it (a config `with_capture_choices` did not see)."""
   value = getattr(config, name)

@@ -30,8 +30,8 @@ from jax.sharding import Mesh
 from signerf_jax import parallel, validation
 from signerf_jax.errors import InputError
 from signerf_jax.nerf import keypoint_depth, losses, photo_consistency, training_data
-from signerf_jax.nerf.capture_choices import capture_default
 from signerf_jax.nerf import model as nerf_model
+from signerf_jax.nerf.capture_choices import capture_default
 from signerf_jax.nerf.encoding import level_weights_at
 from signerf_jax.nerf.training_data import TrainingData
 from signerf_jax.validation import NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt
