@@ -114,7 +114,7 @@ def finetune_step(model: nerf_model.NerfModel, config: train.TrainConfig,
     ray_weights = pixel_weight * outputs["ray_complete"]
     l1 = weighted_l1(outputs["rgb"], target, ray_weights)
     loss = l1 + capture_default(config, "distortion_loss_weight") * losses.distortion_loss(
-        aux["edges"], aux["weights"], model.scene.extent, ray_weights)
+        aux, model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
           aux["edges"], aux["weights"], aux["proposals"], ray_weights)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from signerf_jax.nerf import sampling
+from signerf_jax.nerf import packed, sampling
 
 
 def weighted_mse(predicted, target, weights):
@@ -21,25 +21,41 @@ def weighted_mse(predicted, target, weights):
   return jnp.sum(weights * squared) / jnp.maximum(3.0 * jnp.sum(weights), 1e-8)
 
 
-def distortion_loss(edges, weights, scale: float, ray_weights):
-  """mip-NeRF 360 eq. 15: sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 (t_i+1 - t_i).
+def ray_distortion(edges, weights, scale: float):
+  """[R] mip-NeRF 360 eq. 15 per ray: sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 (t_i+1 - t_i).
 
   It pulls each ray's weight into as short a stretch as possible: crisp surfaces, so the
   expected depth the editing stages read is where the surface is, not smeared through it.
   The pairwise sum is computed in O(N) from prefix sums over the sorted midpoints.
 
   Args:
-    edges: [R, N + 1] sorted interval edges; weights: [R, N].
+    edges: [R, N + 1] sorted finite interval edges; weights: [R, N].
     scale: distances are divided by it (the scene's extent), keeping the weight scale-free.
-    ray_weights: [R] per-ray loss weights.
   """
-  edges = jnp.minimum(edges, edges[..., -2:-1] * 2.0) / scale  # an infinite last interval
+  edges = edges / scale
   midpoints = sampling.midpoints(edges)
   cumulative_weight = jnp.cumsum(weights, axis=-1) - weights
   cumulative_moment = jnp.cumsum(weights * midpoints, axis=-1) - weights * midpoints
   pairwise = 2.0 * jnp.sum(weights * (midpoints * cumulative_weight - cumulative_moment), axis=-1)
-  within = jnp.sum(weights**2 * (edges[..., 1:] - edges[..., :-1]), axis=-1) / 3.0
-  return jnp.sum(ray_weights * (pairwise + within)) / jnp.maximum(jnp.sum(ray_weights), 1e-8)
+  return pairwise + jnp.sum(weights**2 * (edges[..., 1:] - edges[..., :-1]), axis=-1) / 3.0
+
+
+def distortion_loss(aux, scale: float, ray_weights):
+  """The mean over rays of `ray_distortion`, weighted by `ray_weights` [R], of the samples in
+  `nerf_model.render_rays`' aux: packed where it has them (its "packed" samples and weights,
+  `packed.ray_distortion`), else its "edges" [R, N + 1] and "weights" [R, N]. An infinite last
+  interval counts as twice as far as its start."""
+  edges = aux["edges"]
+  limit = 2.0 * edges[:, -2]
+  if "packed" in aux:
+    samples, weights = aux["packed"]
+    sample_limit = packed.at_samples(limit, samples)
+    samples = samples._replace(starts=jnp.minimum(samples.starts, sample_limit),
+                               ends=jnp.minimum(samples.ends, sample_limit))
+    per_ray = packed.ray_distortion(samples, weights, edges.shape[0], scale)
+  else:
+    per_ray = ray_distortion(jnp.minimum(edges, limit[:, None]), aux["weights"], scale)
+  return jnp.sum(ray_weights * per_ray) / jnp.maximum(jnp.sum(ray_weights), 1e-8)
 
 
 def opacity_entropy(weights, ray_weights):
@@ -148,7 +164,7 @@ def _scale_gradient_backward(scale, gradient):
 scale_gradient.defvjp(_scale_gradient_forward, _scale_gradient_backward)
 
 
-def near_camera_gradient_scaling(densities, rgbs, edges, distance_unit: float):
+def near_camera_gradient_scaling(densities, rgbs, distances, distance_unit: float):
   """Floaters No More (Philip & Deschaintre, EGSR 2023): each sample's density and colour
   gradients are scaled by min(1, (t / distance_unit)^2), t its distance from the camera.
 
@@ -157,10 +173,9 @@ def near_camera_gradient_scaling(densities, rgbs, edges, distance_unit: float):
   quadratic falloff evens out that density of gradient. Values are unchanged.
 
   Args:
-    densities: [R, N]; rgbs: [R, N, 3]; edges: [R, N + 1] of the samples.
+    densities: [...]; rgbs: [..., 3]; distances: [...] of the samples (their midpoints).
     distance_unit: distance (scene units) from which gradients are unscaled (the cameras'
       distance to the scene, as nerfstudio's unit-scaled scenes use 1).
   """
-  distances = sampling.midpoints(edges)
   scale = jnp.minimum(jax.lax.stop_gradient(distances) / distance_unit, 1.0)**2
   return scale_gradient(densities, scale), scale_gradient(rgbs, scale[..., None])

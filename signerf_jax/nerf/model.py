@@ -28,7 +28,7 @@ from flax import struct
 
 from signerf_jax.camera import Rays
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import occupancy, ray_samples, sampling, volume
+from signerf_jax.nerf import losses, occupancy, packed, ray_samples, sampling, volume
 from signerf_jax.nerf.capacity import Capacity
 from signerf_jax.nerf.scene_info import SceneInfo
 from signerf_jax.nerf.encoding import grid_layout
@@ -214,13 +214,18 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
       (`region_surroundings`, shape [R]), so that only the trained field is evaluated; the
       outputs then hold "rgb" and "accumulation" alone.
   Returns:
-    outputs: `volume.volume_render`'s dict, plus "ray_complete" [R] bool (False for dropped rays).
+    outputs: `volume.volume_render`'s dict, plus "ray_complete" [R] bool (False for dropped rays);
+      training a model without an edit region with the occupancy sampler, which composites its
+      samples packed (`_render_packed`), the dict lacks the weights and median depths.
     aux: terms for the losses and statistics, of the trained field alone (inside the edit
       region for an edit): "edges" [R, N + 1] and "weights" [R, N] of its samples, "proposals"
       [(edges, weights)] of the proposal networks (empty for the occupancy sampler),
-      "samples_evaluated" (radiance-field evaluations, all fields).
+      "samples_evaluated" (radiance-field evaluations, all fields), and with packed samples
+      "packed" (`_render_packed`).
   """
-  if model.edit_region is None:
+  if model.edit_region is None and training and model.capacity.sampler == "occupancy":
+    outputs, ray_complete, aux = _render_packed(model, variables, rays, key, background)
+  elif model.edit_region is None:
     samples, ray_complete, aux = ray_samples.field_samples(
         model, variables, rays, key, training, ray_samples.ray_range(model, rays), finish=True,
         occupied_march=occupied_march)
@@ -234,6 +239,28 @@ def render_rays(model: NerfModel, variables: Variables, rays: Rays, key, *, trai
                                                 background, surroundings)
   outputs["ray_complete"] = ray_complete
   return outputs, aux
+
+
+def _render_packed(model: NerfModel, variables: Variables, rays: Rays, key, background):
+  """Training with the occupancy sampler: its samples composited packed (`packed`), as
+  `volume.volume_render` would the march's steps; the outputs lack the weights and median
+  depths. Aux holds the packed samples and their weights ("packed", which
+  `losses.distortion_loss` reads), and the weights spread over the march's steps ("weights",
+  computed only where a loss reads them)."""
+  samples, edges, ray_complete, aux = ray_samples.packed_occupancy_samples(
+      model, variables, rays, key, ray_samples.ray_range(model, rays), finish=True)
+  if model.capacity.near_gradient_scaling:
+    densities, rgbs = losses.near_camera_gradient_scaling(
+        samples.densities, samples.rgbs, 0.5 * (samples.starts + samples.ends),
+        model.scene.camera_distance)
+    samples = samples._replace(densities=densities, rgbs=rgbs)
+  outputs, weights = packed.volume_render(
+      samples, edges[:, 0], edges[:, -1], rays.cos_to_optical_axis,
+      model.background if background is None else background)
+  num_rays, num_steps = edges.shape[0], edges.shape[1] - 1
+  aux.update(edges=edges, weights=packed.spread(weights, samples, num_rays, num_steps),
+             packed=(samples, weights))
+  return outputs, ray_complete, aux
 
 
 def _region_interval(model: NerfModel, rays: Rays, t_near, t_far):

@@ -176,8 +176,10 @@ def evaluate_in_groups(field_at, mask, unit_points, directions, appearance, budg
   evaluates only its own.
 
   Returns:
-    density [R * N], rgb [R * N, 3], ray_complete [R] (no sample of the ray was dropped) and the
-    number of samples evaluated.
+    for G = `groups` groups of K = budget / G samples: indices [G, K] int32, each sample's flat
+    index into its group's mask [R / G, N] (in order; R / G * N: padding), density [G, K] (0 at
+    padding), rgb [G, K, 3]; ray_complete [R] (no sample of the ray was dropped) and the number
+    of samples evaluated.
   """
   num_rays = mask.shape[0]
   if num_rays % groups or budget % groups:
@@ -187,14 +189,12 @@ def evaluate_in_groups(field_at, mask, unit_points, directions, appearance, budg
   def render_group(mask, unit_points, directions, appearance):
     indices, valid, complete = compact(mask, budget // groups)
     density, rgb = field_at(mask, unit_points, directions, appearance, indices)
-    return (_scatter(jnp.zeros(mask.size, jnp.float32), indices, density),
-            _scatter(jnp.zeros((mask.size, 3), jnp.float32), indices, rgb), complete,
-            jnp.sum(valid))
+    return indices, density, rgb, complete, jnp.sum(valid)
 
   grouped = lambda array: array.reshape((groups, -1) + array.shape[1:])
-  densities, rgbs, ray_complete, samples = jax.vmap(render_group)(
+  indices, density, rgb, ray_complete, samples = jax.vmap(render_group)(
       grouped(mask), grouped(unit_points), grouped(directions), grouped(appearance))
-  return densities, rgbs, ray_complete.reshape(-1), jnp.sum(samples)
+  return indices, density, rgb, ray_complete.reshape(-1), jnp.sum(samples)
 
 
 def evaluate_every_occupied(field_at, mask, unit_points, directions, appearance,

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from signerf_jax.camera import Rays
-from signerf_jax.nerf import losses, occupancy, sampling, volume
+from signerf_jax.nerf import losses, occupancy, packed, sampling, volume
 
 # A sample whose alpha is below this is skipped by the occupancy sampler (instant-NGP: 0.01).
 OCCUPANCY_MIN_ALPHA = 0.01
@@ -67,9 +67,40 @@ def field_samples(model, variables: Variables, rays: Rays, key, training: bool, 
                                                    interval, finish)
   if training and model.capacity.near_gradient_scaling:
     densities, rgbs, edges = samples
-    samples = (*losses.near_camera_gradient_scaling(densities, rgbs, edges,
+    samples = (*losses.near_camera_gradient_scaling(densities, rgbs, sampling.midpoints(edges),
                                                      model.scene.camera_distance), edges)
   return samples, ray_complete, aux
+
+
+def packed_occupancy_samples(model, variables: Variables, rays: Rays, key, interval,
+                             finish: bool):
+  """Training with the occupancy sampler: the field at the occupied samples of the march over
+  `interval` (near [R], far [R]) within the sample budget (`occupancy.evaluate_in_groups`),
+  packed (`packed.PackedSamples`) instead of spread over the march's steps.
+
+  Returns:
+    the packed samples, the march's edges [R, N + 1] (finished if `finish`), ray_complete [R]
+    bool, and {"proposals": [], "samples_evaluated"} (see `render_rays`).
+  """
+  capacity = model.capacity
+  edges, unit_points, mask = occupied_samples(model, variables, rays, key, True, interval)
+  indices, density, rgb, ray_complete, count = occupancy.evaluate_in_groups(
+      functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
+      _appearance(model, rays, True), capacity.samples_per_batch, capacity.sample_groups)
+  if finish:
+    edges = finish_edges(model, edges)
+  num_rays, num_steps = mask.shape
+  rays_per_group = num_rays // capacity.sample_groups
+  ray, step = indices // num_steps, indices % num_steps
+
+  def intervals(group_edges, ray, step):
+    ray = jnp.minimum(ray, rays_per_group - 1)  # Padding: any interval (its density is 0).
+    return group_edges[ray, step], group_edges[ray, step + 1]
+
+  starts, ends = jax.vmap(intervals)(edges.reshape(capacity.sample_groups, rays_per_group, -1),
+                                     ray, step)
+  samples = packed.PackedSamples(ray, step, starts, ends, density, rgb)
+  return samples, edges, ray_complete, {"proposals": [], "samples_evaluated": count}
 
 
 def _appearance(model, rays: Rays, training: bool):
@@ -168,23 +199,23 @@ def occupied_samples(model, variables: Variables, rays: Rays, key, training: boo
 
 
 def _occupancy_samples(model, variables, rays, key, training, interval, finish, march):
-  capacity = model.capacity
+  if training:
+    samples, edges, ray_complete, aux = packed_occupancy_samples(model, variables, rays, key,
+                                                                 interval, finish)
+    num_rays, num_steps = edges.shape[0], edges.shape[1] - 1
+    spread = lambda values: packed.spread(values, samples, num_rays, num_steps)
+    return (spread(samples.densities), spread(samples.rgbs), edges), ray_complete, aux
   edges, unit_points, mask = occupied_samples(model, variables, rays, key, training, interval,
                                               march)
   num_rays, num_steps = mask.shape
-  inputs = (functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
-            _appearance(model, rays, training))
-  if training:
-    densities, rgbs, ray_complete, samples = occupancy.evaluate_in_groups(
-        *inputs, capacity.samples_per_batch, capacity.sample_groups)
-  else:
-    densities, rgbs, samples = occupancy.evaluate_every_occupied(*inputs, RENDER_PIECE_SAMPLES)
-    ray_complete = jnp.ones(rays.shape, bool)
+  densities, rgbs, samples = occupancy.evaluate_every_occupied(
+      functools.partial(_field_at, model, variables), mask, unit_points, rays.directions,
+      _appearance(model, rays, training), RENDER_PIECE_SAMPLES)
   if finish:
     edges = finish_edges(model, edges)
   along_rays = (densities.reshape(num_rays, num_steps), rgbs.reshape(num_rays, num_steps, 3),
                 edges)
-  return along_rays, ray_complete, {"proposals": [], "samples_evaluated": samples}
+  return along_rays, jnp.ones(rays.shape, bool), {"proposals": [], "samples_evaluated": samples}
 
 
 def proposal_edges(model, params, rays: Rays, key, training: bool, interval, finish: bool,

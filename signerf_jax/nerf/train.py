@@ -260,7 +260,7 @@ def train_step(model: nerf_model.NerfModel, config: TrainConfig, state: TrainSta
     pixel_complete = outputs["ray_complete"].reshape(-1, rays_per_pixel).all(axis=1)
     mse = losses.weighted_mse(pixel_rgb, target, pixel_weight * pixel_complete)
     loss = mse + capture_default(config, "distortion_loss_weight") * losses.distortion_loss(
-        aux["edges"], aux["weights"], model.scene.extent, ray_weights)
+        aux, model.scene.extent, ray_weights)
     if aux["proposals"]:
       loss = loss + config.interlevel_loss_weight * losses.interlevel_loss(
           aux["edges"], aux["weights"], aux["proposals"], ray_weights)
@@ -303,9 +303,11 @@ def _split_keypoint_rays(model: nerf_model.NerfModel, seen: int, distances, outp
   error = losses.disparity_error(
       aux["edges"][keypoints], aux["weights"][keypoints], distances,
       model.scene.camera_distance, outputs["ray_complete"][keypoints].astype(jnp.float32))
-  per_ray = {name: value for name, value in aux.items() if name != "samples_evaluated"}
+  # Packed samples are not split by ray: the losses read the batch's from the dense weights.
+  per_ray = {name: value for name, value in aux.items()
+             if name not in ("samples_evaluated", "packed")}
   outputs, per_ray = jax.tree.map(lambda array: array[:seen], (outputs, per_ray))
-  return outputs, {**aux, **per_ray}, error
+  return outputs, {**per_ray, "samples_evaluated": aux["samples_evaluated"]}, error
 
 
 def add_opacity_entropy(config: TrainConfig, loss, weights, ray_weights, statistics):

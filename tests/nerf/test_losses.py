@@ -57,32 +57,44 @@ def brute_force_distortion(edges, weights):
   return pairwise + np.sum(weights**2 * np.diff(edges)) / 3
 
 
-def test_distortion_loss_matches_pairwise_sum_and_prefers_concentrated_weights():
+def test_distortion_matches_pairwise_sum_and_prefers_concentrated_weights():
   rng = np.random.default_rng(1)
   edges = np.sort(rng.uniform(0, 4, 9))
   weights = rng.uniform(0, 0.2, 8)
-  loss = losses.distortion_loss(jnp.asarray(edges)[None], jnp.asarray(weights)[None], 2.0,
-                                jnp.ones(1))
-  assert float(loss) == pytest.approx(brute_force_distortion(edges / 2, weights), rel=1e-5)
+  per_ray = losses.ray_distortion(jnp.asarray(edges)[None], jnp.asarray(weights)[None], 2.0)
+  assert float(per_ray[0]) == pytest.approx(brute_force_distortion(edges / 2, weights), rel=1e-5)
   uniform_edges = jnp.linspace(0, 1, 9)[None]
-  spread = losses.distortion_loss(uniform_edges, jnp.full((1, 8), 1 / 8), 1.0, jnp.ones(1))
-  peaked = losses.distortion_loss(uniform_edges, jnp.eye(8)[3:4], 1.0, jnp.ones(1))
-  assert float(peaked) < float(spread)
+  spread = losses.ray_distortion(uniform_edges, jnp.full((1, 8), 1 / 8), 1.0)
+  peaked = losses.ray_distortion(uniform_edges, jnp.eye(8)[3:4], 1.0)
+  assert float(peaked[0]) < float(spread[0])
+
+
+def test_distortion_loss_is_the_weighted_mean_over_rays_and_caps_an_infinite_interval():
+  edges = jnp.array([[1.0, 2.0, 3.0, sampling.MAX_DISTANCE], [1.0, 2.0, 3.0, 4.0]])
+  weights = jnp.array([[0.0, 0.5, 0.5], [0.2, 0.2, 0.2]])
+  loss = losses.distortion_loss({"edges": edges, "weights": weights}, 1.0,
+                                jnp.array([1.0, 3.0]))
+  # The first ray's infinite last interval ends at twice its start: [3, 6].
+  first = brute_force_distortion(np.array([1.0, 2.0, 3.0, 6.0]), np.array([0.0, 0.5, 0.5]))
+  second = brute_force_distortion(np.array([1.0, 2.0, 3.0, 4.0]), np.full(3, 0.2))
+  assert float(loss) == pytest.approx((first + 3 * second) / 4, rel=1e-5)
 
 
 def test_gradient_scaling_keeps_values_and_scales_gradients_by_squared_distance():
   densities = jnp.array([[1.0, 1e10, 0.0, 5.0]])
   rgbs = jnp.full((1, 4, 3), 0.5)
   edges = jnp.array([[0.0, 0.2, 0.6, 2.0, sampling.MAX_DISTANCE]])
-  scaled_densities, scaled_rgbs = losses.near_camera_gradient_scaling(densities, rgbs, edges, 1.0)
+  distances = sampling.midpoints(edges)
+  scaled_densities, scaled_rgbs = losses.near_camera_gradient_scaling(densities, rgbs, distances,
+                                                                      1.0)
   np.testing.assert_array_equal(scaled_densities, densities)
   np.testing.assert_array_equal(scaled_rgbs, rgbs)
   gradient = jax.grad(lambda d: jnp.sum(losses.near_camera_gradient_scaling(
-      d, rgbs, edges, 1.0)[0]))(densities)
+      d, rgbs, distances, 1.0)[0]))(densities)
   # Midpoints 0.1, 0.4, 1.3, ~5e9: (t / 1)^2 up to 1.
   np.testing.assert_allclose(gradient, [[0.01, 0.16, 1.0, 1.0]], rtol=1e-6)
   colour_gradient = jax.grad(lambda c: jnp.sum(losses.near_camera_gradient_scaling(
-      densities, c, edges, 2.0)[1]))(rgbs)
+      densities, c, distances, 2.0)[1]))(rgbs)
   np.testing.assert_allclose(colour_gradient[0, :, 0], [0.0025, 0.04, 0.4225, 1.0], rtol=1e-5)
   assert np.all(np.isfinite(colour_gradient))
 

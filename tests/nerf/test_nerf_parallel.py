@@ -97,9 +97,13 @@ def test_two_four_and_eight_devices_train_like_one(tmp_path):
     assert int(runs[f"compilations_{count}"]) == 0
     np.testing.assert_allclose(runs[f"losses_{count}"], runs["losses_1"], rtol=1e-5,
                                err_msg=f"{count} devices")
+    # Adam (eps 1e-15) turns the rounding of a near-zero gradient, which the devices' partial
+    # sums change, into a step of up to the learning rate: a few of the grid's entries differ
+    # by a small share of one step (4 devices: 21 of 16,384 entries, 2% of a step).
     for name in names:
       np.testing.assert_allclose(runs[name.replace("_1_", f"_{count}_")], runs[name],
-                                 rtol=1e-4, atol=1e-6, err_msg=f"{name}, {count} devices")
+                                 rtol=1e-4, atol=0.05 * CONFIG.learning_rate,
+                                 err_msg=f"{name}, {count} devices")
   for count in PIXEL_SAMPLES_DEVICE_COUNTS:
     np.testing.assert_allclose(runs[f"pixel_samples_losses_{count}"],
                                runs["pixel_samples_losses_1"], rtol=1e-5,
