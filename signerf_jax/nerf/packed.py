@@ -60,7 +60,8 @@ def exclusive_cumsum(values, first):
   A Hillis-Steele scan, each sample adding the partial sum `distance` samples back until that
   reaches back past its ray's first sample, with `distance` doubling: log2(K) elementwise
   passes, which XLA compiles in a fraction of the time `jax.lax.associative_scan`'s
-  interleavings take (0.4 s against 1.2 s for [8, 8192]; 10 s more for a training step).
+  interleavings take (0.4 s against 1.2 s for [8, 8192]; lego's training step compiled in
+  8.9 s against 16.8 s).
   """
   total, reached = values, first
   distance = 1
