@@ -28,7 +28,7 @@ from flax import struct
 
 from signerf_jax.camera import Rays
 from signerf_jax.errors import InputError
-from signerf_jax.nerf import losses, occupancy, packed, ray_samples, sampling, volume
+from signerf_jax.nerf import occupancy, packed, ray_samples, sampling, volume
 from signerf_jax.nerf.capacity import Capacity
 from signerf_jax.nerf.scene_info import SceneInfo
 from signerf_jax.nerf.encoding import grid_layout
@@ -249,11 +249,6 @@ def _render_packed(model: NerfModel, variables: Variables, rays: Rays, key, back
   computed only where a loss reads them)."""
   samples, edges, ray_complete, aux = ray_samples.packed_occupancy_samples(
       model, variables, rays, key, ray_samples.ray_range(model, rays), finish=True)
-  if model.capacity.near_gradient_scaling:
-    densities, rgbs = losses.near_camera_gradient_scaling(
-        samples.densities, samples.rgbs, 0.5 * (samples.starts + samples.ends),
-        model.scene.camera_distance)
-    samples = samples._replace(densities=densities, rgbs=rgbs)
   outputs, weights = packed.volume_render(
       samples, edges[:, 0], edges[:, -1], rays.cos_to_optical_axis,
       model.background if background is None else background)

@@ -60,16 +60,19 @@ def field_samples(model, variables: Variables, rays: Rays, key, training: bool, 
     {"proposals", "samples_evaluated"} (see `render_rays`).
   """
   if model.capacity.sampler == "occupancy":
-    samples, ray_complete, aux = _occupancy_samples(model, variables, rays, key, training,
-                                                    interval, finish, occupied_march)
-  else:
-    samples, ray_complete, aux = _proposal_samples(model, variables, rays, key, training,
-                                                   interval, finish)
-  if training and model.capacity.near_gradient_scaling:
-    densities, rgbs, edges = samples
-    samples = (*losses.near_camera_gradient_scaling(densities, rgbs, sampling.midpoints(edges),
-                                                     model.scene.camera_distance), edges)
-  return samples, ray_complete, aux
+    return _occupancy_samples(model, variables, rays, key, training, interval, finish,
+                              occupied_march)
+  return _proposal_samples(model, variables, rays, key, training, interval, finish)
+
+
+def _near_camera_scaled(model, training: bool, densities, rgbs, distances):
+  """The samples' densities and rgbs, their gradients scaled near the cameras while training
+  where the capacity asks (`losses.near_camera_gradient_scaling`; `distances`: the samples'
+  midpoints)."""
+  if not (training and model.capacity.near_gradient_scaling):
+    return densities, rgbs
+  return losses.near_camera_gradient_scaling(densities, rgbs, distances,
+                                             model.scene.camera_distance)
 
 
 def packed_occupancy_samples(model, variables: Variables, rays: Rays, key, interval,
@@ -99,6 +102,7 @@ def packed_occupancy_samples(model, variables: Variables, rays: Rays, key, inter
 
   starts, ends = jax.vmap(intervals)(edges.reshape(capacity.sample_groups, rays_per_group, -1),
                                      ray, step)
+  density, rgb = _near_camera_scaled(model, True, density, rgb, 0.5 * (starts + ends))
   samples = packed.PackedSamples(ray, step, starts, ends, density, rgb)
   return samples, edges, ray_complete, {"proposals": [], "samples_evaluated": count}
 
@@ -271,6 +275,7 @@ def _proposal_samples(model, variables, rays, key, training, interval, finish):
   appearance = jnp.broadcast_to(_appearance(model, rays, training)[..., None], sample_shape)
   density, rgb = model.field.apply({"params": params["field"]}, points_of(model, rays, edges),
                                    directions, appearance, variables.get("level_weights"))
+  density, rgb = _near_camera_scaled(model, training, density, rgb, sampling.midpoints(finished))
   proposal_counts, field_count = model.capacity.sample_counts(training)
   samples = sum(proposal_counts) + field_count
   return ((density, rgb, finished), jnp.ones(rays.shape, bool),
